@@ -1,0 +1,247 @@
+"""Thin helpers around Mitsuba 3, used to make reference images and to benchmark against it.
+
+Importing this module has no side effects: Mitsuba is imported lazily inside the functions.
+If Mitsuba is not installed, ``available()`` returns False and the other functions raise
+``RuntimeError`` with a clear message.
+
+Variant: ``llvm_ad_rgb`` (falls back to ``scalar_rgb`` when the LLVM backend cannot be
+initialised).  The drjit LLVM backend needs libLLVM; ``DRJIT_LIBLLVM_PATH`` is set to the
+Debian libLLVM 19 library (``/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1``) if it is unset and
+that file exists (libLLVM 15 crashes with the installed drjit).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import xml.etree.ElementTree as ET
+
+LIBLLVM_PATH = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
+PREFERRED_VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
+
+# Largest number of samples (pixels x spp) rendered in one Mitsuba pass with a JIT
+# (llvm/cuda) variant; bigger renders are split into passes of equal spp, each with its own
+# seed, and averaged (keeps the wavefront's memory bounded).
+MAX_SAMPLES_PER_PASS = 1 << 22
+
+_MISSING = ("Mitsuba 3 is not available (pip package 'mitsuba' not importable or no usable "
+            "variant among %s); install it with 'pip install mitsuba'." % (PREFERRED_VARIANTS,))
+
+_state = {"mi": None, "error": None}
+
+
+def _mitsuba():
+    """Import mitsuba, select a variant, and return the module (cached)."""
+    if _state["mi"] is not None:
+        return _state["mi"]
+    if _state["error"] is not None:
+        raise RuntimeError(_MISSING + " Cause: " + _state["error"])
+    if "DRJIT_LIBLLVM_PATH" not in os.environ and os.path.exists(LIBLLVM_PATH):
+        os.environ["DRJIT_LIBLLVM_PATH"] = LIBLLVM_PATH
+    try:
+        import mitsuba as mi
+    except Exception as e:  # ImportError, or a broken install
+        _state["error"] = "import mitsuba failed: %r" % (e,)
+        raise RuntimeError(_MISSING + " Cause: " + _state["error"]) from e
+    errors = []
+    for v in PREFERRED_VARIANTS:
+        try:
+            mi.set_variant(v)
+            _state["mi"] = mi
+            return mi
+        except Exception as e:
+            errors.append("%s: %r" % (v, e))
+    _state["error"] = "; ".join(errors)
+    raise RuntimeError(_MISSING + " Cause: " + _state["error"])
+
+
+def available() -> bool:
+    """True if mitsuba is importable and one of the preferred variants could be set."""
+    try:
+        _mitsuba()
+        return True
+    except RuntimeError:
+        return False
+
+
+def variant() -> str:
+    """The Mitsuba variant in use (e.g. 'llvm_ad_rgb')."""
+    return _mitsuba().variant()
+
+
+def version() -> str:
+    return _mitsuba().__version__
+
+
+# ----------------------------------------------------------------------------- scene loading
+
+def _inline(root: ET.Element, folder: str, search: list) -> None:
+    """Recursively inline <include> elements and drop <path> elements naming missing folders.
+
+    ``search`` is the list of folders used to resolve relative file names (Mitsuba resolves
+    <include filename> and mesh file names through its file resolver, whose first entry is
+    the folder of the top-level scene file)."""
+    for i, child in reversed(list(enumerate(list(root)))):
+        if child.tag == "path":
+            p = child.get("value", "")
+            full = p if os.path.isabs(p) else os.path.normpath(os.path.join(folder, p))
+            root.remove(child)
+            if os.path.isdir(full):
+                search.insert(0, full)  # <path> prepends to the resolver, like Mitsuba does
+        elif child.tag == "include":
+            fn = child.get("filename", "")
+            cands = [fn] if os.path.isabs(fn) else [os.path.join(d, fn) for d in search]
+            cands = [c for c in cands if os.path.exists(c)]
+            if not cands:
+                raise FileNotFoundError("<include filename=%r>: not found in %s" % (fn, search))
+            sub = ET.parse(cands[0]).getroot()
+            _inline(sub, os.path.dirname(os.path.abspath(cands[0])), search)
+            root.remove(child)
+            for j, sc in enumerate(list(sub)):
+                root.insert(i + j, sc)
+        else:
+            _inline(child, folder, search)
+
+
+def _set_film_size(root: ET.Element, width, height) -> None:
+    films = [f for s in root.iter("sensor") for f in s.findall("film")]
+    if not films:
+        raise ValueError("no <sensor><film> found in the scene")
+    for film in films:
+        for name, val in (("width", width), ("height", height)):
+            if val is None:
+                continue
+            elems = [e for e in film if e.get("name") == name]
+            if elems:
+                for e in elems:
+                    e.tag = "integer"
+                    e.set("value", str(int(val)))
+            else:
+                ET.SubElement(film, "integer", {"name": name, "value": str(int(val))})
+
+
+def scene_xml(path, width=None, height=None) -> str:
+    """The XML text Mitsuba is given by ``load_scene``: includes inlined, <path> elements
+    removed (existing folders are added to the resolver instead), film size replaced."""
+    path = os.path.abspath(str(path))
+    folder = os.path.dirname(path)
+    root = ET.parse(path).getroot()
+    search = [folder]
+    _inline(root, folder, search)
+    if width is not None or height is not None:
+        _set_film_size(root, width, height)
+    return ET.tostring(root, encoding="unicode"), search
+
+
+def load_scene(path, width=None, height=None, **defaults):
+    """Load a Mitsuba 3 XML scene file.
+
+    ``defaults`` override the file's ``<default name=... value=...>`` parameters (values are
+    converted with ``str``).  ``<include>`` files are inlined and ``<path>`` elements that
+    name missing folders are dropped (Mitsuba's loader fails on them; veach-mis has one);
+    existing ``<path>`` folders and the scene's own folder are prepended to Mitsuba's file
+    resolver while loading (the resolver is restored afterwards).  If ``width``/``height``
+    are given, the film's ``width``/``height`` are replaced; everything else (rfilter, fov,
+    fov_axis, no crop) is kept as in the file."""
+    mi = _mitsuba()
+    text, search = scene_xml(path, width, height)
+    fr = mi.file_resolver()
+    saved = [str(p) for p in fr]
+    try:
+        for d in reversed(search):
+            fr.prepend(d)
+        kwargs = {k: str(v) for k, v in defaults.items()}
+        return mi.load_string(text, **kwargs)
+    finally:
+        fr.clear()
+        for p in saved:
+            fr.append(p)
+
+
+# ----------------------------------------------------------------------------- rendering
+
+def _pass_seed(seed: int, i: int) -> int:
+    # Distinct, well-separated seeds for the passes of one render; pass 0 uses ``seed`` itself
+    # so that single-pass renders match mi.render(scene, spp=spp, seed=seed).
+    return (int(seed) + i * 0x9E3779B1) & 0xFFFFFFFF
+
+
+def render(scene, spp, seed=0):
+    """Render the scene's first sensor with ``spp`` samples per pixel; returns a float32
+    numpy array (H, W, 3) (alpha, if the film has it, is dropped).
+
+    With a JIT variant, renders with more than ``MAX_SAMPLES_PER_PASS`` samples are split
+    into equal passes (seeds derived from ``seed``) whose images are averaged; each pass is
+    Mitsuba's own filtered-and-normalised film output."""
+    import numpy as np
+    mi = _mitsuba()
+    spp = int(spp)
+    sensor = scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    per_pass = spp
+    if not mi.variant().startswith("scalar"):
+        max_spp = max(1, MAX_SAMPLES_PER_PASS // max(1, w * h))
+        npass = -(-spp // max_spp)
+        while spp % npass:
+            npass += 1
+        per_pass = spp // npass
+    npass = spp // per_pass
+    acc = None
+    for i in range(npass):
+        img = np.asarray(mi.render(scene, spp=per_pass, seed=_pass_seed(seed, i)),
+                         dtype=np.float64)
+        img = img[..., :3] if img.ndim == 3 else np.repeat(img[..., None], 3, axis=2)
+        acc = img if acc is None else acc + img
+    return (acc / npass).astype(np.float32)
+
+
+def _compiled_kernels(dr) -> int:
+    """Number of JIT kernels compiled (not found in drjit's memory cache) since last call."""
+    n = 0
+    for k in dr.kernel_history():
+        if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", 1):
+            n += 1
+    return n
+
+
+def time_render(scene, spp, seed=0, repeats=1):
+    """Time ``render(scene, spp, seed)``; returns (best wall-clock seconds, image).
+
+    JIT warm-up: the LLVM variant traces and compiles its kernels on first use; drjit
+    caches them (in memory and on disk) by kernel IR.  The IR does not depend on the seed,
+    but, as measured with drjit's kernel history, it does depend on the wavefront size
+    class (in Mitsuba 3.9.1 / cbox: spp 1-2 share a kernel, 3 another, powers of two >= 4
+    another, other spp another).  So we (1) render once, untimed, at low spp (min(spp, 4)) with
+    another seed, then (2) time the render; with drjit's kernel history enabled we check
+    whether the timed render still compiled a kernel and, if so, render and time it again
+    (at most twice), so the reported time excludes compilation.  With ``repeats > 1``
+    the minimum over repeats is returned, with the image of the last repeat.  With the
+    scalar variant there is no JIT and the warm-up is skipped."""
+    import drjit as dr
+    mi = _mitsuba()
+    jit = not mi.variant().startswith("scalar")
+    if jit:
+        flag = dr.flag(dr.JitFlag.KernelHistory)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        render(scene, min(int(spp), 4), seed=seed + 12345)  # warm-up (untimed)
+        dr.sync_thread()
+        _compiled_kernels(dr)  # clears the history
+    try:
+        best, img = float("inf"), None
+        runs, extra = max(1, int(repeats)), 0
+        i = 0
+        while i < runs:
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            img = render(scene, spp, seed=seed)
+            dr.sync_thread()
+            dt = time.perf_counter() - t0
+            if jit and _compiled_kernels(dr) and extra < 2:
+                extra += 1  # this run included compilation: do not count it
+                continue
+            best = min(best, dt)
+            i += 1
+    finally:
+        if jit:
+            dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    return best, img

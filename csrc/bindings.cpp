@@ -1,0 +1,413 @@
+// The only translation unit that includes torch: converts tensors and Python descriptions
+// into the core's plain types, validates them once, and runs the core on torch's thread pool.
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+
+#include "render.h"
+
+namespace py = pybind11;
+using namespace rbpt;
+
+namespace {
+
+[[noreturn]] void fail(const std::string &message) { throw py::value_error(message); }
+
+template <typename T>
+T get(const py::dict &d, const char *key) {
+    if (!d.contains(key)) fail(std::string("missing entry '") + key + "'");
+    return d[key].cast<T>();
+}
+
+Vec3 vec3(const std::vector<float> &v, const char *what) {
+    if (v.size() != 3) fail(std::string(what) + " must have 3 entries, got " + std::to_string(v.size()));
+    return {v[0], v[1], v[2]};
+}
+
+TextureRef texture_ref(const py::object &o) {
+    TextureRef t;
+    if (o.is_none()) return t;
+    auto pair = o.cast<std::pair<int, int>>();
+    t.param = pair.first;
+    t.bitmap = pair.second;
+    return t;
+}
+
+MicrofacetType distribution(const std::string &name) {
+    if (name == "beckmann") return MicrofacetType::Beckmann;
+    if (name == "ggx") return MicrofacetType::GGX;
+    fail("unknown microfacet distribution '" + name + "' (supported: beckmann, ggx)");
+}
+
+/// Check a float tensor's shape and return it contiguous on the CPU as float32.
+torch::Tensor float_array(const torch::Tensor &t, int64_t cols, const char *what) {
+    if (t.dim() != 2 || t.size(1) != cols)
+        fail(std::string(what) + " must have shape [N, " + std::to_string(cols) + "], got " +
+             std::string(c10::str(t.sizes())));
+    return t.to(torch::kCPU, torch::kFloat32).contiguous();
+}
+
+Camera make_camera(const py::dict &d) {
+    Camera cam;
+    auto m = get<std::vector<std::vector<float>>>(d, "to_world");
+    if (m.size() < 3 || m[0].size() != 4) fail("camera to_world must be a 4x4 matrix");
+    auto column = [&](int j) { return Vec3{m[0][j], m[1][j], m[2][j]}; };
+    cam.axis_x = normalize(column(0));
+    cam.axis_y = normalize(column(1));
+    cam.axis_z = normalize(column(2));
+    cam.origin = column(3);
+    float fov_x = get<float>(d, "fov_x");
+    cam.film_width = get<int>(d, "width");
+    cam.film_height = get<int>(d, "height");
+    if (cam.film_width <= 0 || cam.film_height <= 0) fail("film size must be positive");
+    cam.tan_half_x = std::tan(0.5f * fov_x * Pi / 180.f);
+    cam.tan_half_y = cam.tan_half_x * float(cam.film_height) / float(cam.film_width);
+    cam.near_clip = get<float>(d, "near_clip");
+    cam.far_clip = get<float>(d, "far_clip");
+    auto crop = get<std::vector<int>>(d, "crop");
+    if (crop.size() != 4) fail("crop must be (x, y, width, height)");
+    cam.crop_x = crop[0];
+    cam.crop_y = crop[1];
+    cam.crop_width = crop[2];
+    cam.crop_height = crop[3];
+    if (cam.crop_x < 0 || cam.crop_y < 0 || cam.crop_width <= 0 || cam.crop_height <= 0 ||
+        cam.crop_x + cam.crop_width > cam.film_width ||
+        cam.crop_y + cam.crop_height > cam.film_height)
+        fail("crop window lies outside the film");
+    auto filter = get<std::string>(d, "filter");
+    if (filter == "box") cam.filter.type = FilterType::Box;
+    else if (filter == "tent") cam.filter.type = FilterType::Tent;
+    else if (filter == "gaussian") cam.filter.type = FilterType::Gaussian;
+    else fail("unknown filter '" + filter + "'");
+    cam.filter.radius = get<float>(d, "filter_radius");
+    cam.filter.stddev = get<float>(d, "filter_stddev");
+    cam.filter.prepare();
+    return cam;
+}
+
+IntegratorSettings make_integrator(const py::dict &d) {
+    IntegratorSettings cfg;
+    auto type = get<std::string>(d, "type");
+    if (type == "path") cfg.type = IntegratorType::Path;
+    else if (type == "direct") cfg.type = IntegratorType::Direct;
+    else fail("unknown integrator '" + type + "'");
+    cfg.max_depth = get<int>(d, "max_depth");
+    cfg.rr_depth = get<int>(d, "rr_depth");
+    cfg.emitter_samples = get<int>(d, "emitter_samples");
+    cfg.bsdf_samples = get<int>(d, "bsdf_samples");
+    return cfg;
+}
+
+/// Validate the parameter tensors against the scene's registry and bind them as Params<S>.
+template <typename T>
+Params<RGB<T>> bind_params(const Scene &scene, const std::vector<torch::Tensor> &tensors) {
+    if (tensors.size() != scene.params.size())
+        fail("expected " + std::to_string(scene.params.size()) + " parameter tensors, got " +
+             std::to_string(tensors.size()));
+    auto dtype = std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64;
+    Params<RGB<T>> p;
+    for (size_t i = 0; i < tensors.size(); ++i) {
+        const torch::Tensor &t = tensors[i];
+        const ParamInfo &info = scene.params[i];
+        if (t.device().type() != torch::kCPU)
+            fail("parameter '" + info.name + "' must be a CPU tensor");
+        if (t.scalar_type() != dtype)
+            fail("parameter '" + info.name + "' must have dtype " + std::string(c10::toString(dtype)) +
+                 ", got " + std::string(c10::toString(t.scalar_type())));
+        if (!t.is_contiguous()) fail("parameter '" + info.name + "' must be contiguous");
+        if (t.numel() != info.numel)
+            fail("parameter '" + info.name + "' must have " + std::to_string(info.numel) +
+                 " entries, got " + std::to_string(t.numel()));
+        p.data.push_back(t.data_ptr<T>());
+        p.numel.push_back(t.numel());
+    }
+    return p;
+}
+
+/// Run `job` once on each thread of torch's intra-op pool.
+void run_on_pool(const std::function<void()> &job) {
+    int n = at::get_num_threads();
+    at::parallel_for(0, n, 1, [&](int64_t begin, int64_t end) {
+        for (int64_t i = begin; i < end; ++i) job();
+    });
+}
+
+template <typename T>
+torch::Tensor render_typed(const Scene &scene, const Camera &cam, const IntegratorSettings &cfg,
+                           const std::vector<torch::Tensor> &params, const RenderRequest &req) {
+    RenderContext<RGB<T>> ctx(scene, bind_params<T>(scene, params));
+    auto dtype = std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64;
+    torch::Tensor out = torch::empty({req.row_end - req.row_begin, cam.crop_width, 3},
+                                     torch::TensorOptions().dtype(dtype));
+    T *data = out.data_ptr<T>();
+    {
+        py::gil_scoped_release release;
+        render(ctx, cam, cfg, req, data, run_on_pool);
+    }
+    return out;
+}
+
+torch::Tensor render_fwd(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                         const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
+                         int row_begin, int row_end) {
+    if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
+    Camera cam = make_camera(camera);
+    IntegratorSettings cfg = make_integrator(integrator);
+    RenderRequest req;
+    req.spp = spp;
+    req.seed = seed;
+    req.row_begin = row_begin;
+    req.row_end = row_end < 0 ? cam.crop_height : row_end;
+    if (req.row_begin < 0 || req.row_begin >= req.row_end || req.row_end > cam.crop_height)
+        fail("rows must satisfy 0 <= begin < end <= crop height");
+    bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
+    return dbl ? render_typed<double>(scene, cam, cfg, params, req)
+               : render_typed<float>(scene, cam, cfg, params, req);
+}
+
+// ---- BSDF queries in the local frame, for statistical tests -----------------------------
+
+SurfaceInteraction local_interaction(const float *wi) {
+    SurfaceInteraction si;
+    si.valid = true;
+    si.n = {0.f, 0.f, 1.f};
+    si.sh_frame = Frame(si.n);
+    si.wi = {wi[0], wi[1], wi[2]};
+    si.uv = {0.5f, 0.5f};
+    return si;
+}
+
+template <typename T>
+py::tuple bsdf_query_typed(const Scene &scene, const std::vector<torch::Tensor> &params, int index,
+                           torch::Tensor wi, torch::Tensor wo, torch::Tensor u1,
+                           torch::Tensor u2, torch::Tensor uv) {
+    RenderContext<RGB<T>> ctx(scene, bind_params<T>(scene, params));
+    const BSDF &b = scene.bsdfs[index];
+    int64_t n = wi.size(0);
+    auto opts = torch::TensorOptions().dtype(std::is_same<T, float>::value ? torch::kFloat32
+                                                                            : torch::kFloat64);
+    torch::Tensor value = torch::zeros({n, 3}, opts), pdf = torch::zeros({n}, torch::kFloat32);
+    torch::Tensor s_wo = torch::zeros({n, 3}, torch::kFloat32), s_pdf = torch::zeros({n}, torch::kFloat32);
+    torch::Tensor s_weight = torch::zeros({n, 3}, opts), s_delta = torch::zeros({n}, torch::kBool);
+    const float *pwi = wi.data_ptr<float>(), *pwo = wo.data_ptr<float>();
+    const float *pu1 = u1.data_ptr<float>(), *pu2 = u2.data_ptr<float>(), *puv = uv.data_ptr<float>();
+    for (int64_t i = 0; i < n; ++i) {
+        SurfaceInteraction si = local_interaction(pwi + 3 * i);
+        si.uv = {puv[2 * i], puv[2 * i + 1]};
+        Vec3 w{pwo[3 * i], pwo[3 * i + 1], pwo[3 * i + 2]};
+        RGB<T> f = bsdf_eval<RGB<T>>(b, ctx, index, si, w);
+        for (int c = 0; c < 3; ++c) value.data_ptr<T>()[3 * i + c] = f[c];
+        pdf.data_ptr<float>()[i] = bsdf_pdf(b, ctx, index, si, w);
+        auto bs = bsdf_sample<RGB<T>>(b, ctx, index, si, pu1[i], Vec2{pu2[2 * i], pu2[2 * i + 1]});
+        if (!bs) continue;
+        for (int c = 0; c < 3; ++c) {
+            s_wo.data_ptr<float>()[3 * i + c] = bs->wo[c];
+            s_weight.data_ptr<T>()[3 * i + c] = bs->weight[c];
+        }
+        s_pdf.data_ptr<float>()[i] = bs->pdf;
+        s_delta.data_ptr<bool>()[i] = bs->delta;
+    }
+    return py::make_tuple(value, pdf, s_wo, s_pdf, s_weight, s_delta);
+}
+
+py::tuple bsdf_query(const Scene &scene, const std::vector<torch::Tensor> &params, int index,
+                     torch::Tensor wi, torch::Tensor wo, torch::Tensor u1, torch::Tensor u2,
+                     torch::Tensor uv) {
+    if (index < 0 || index >= int(scene.bsdfs.size())) fail("BSDF index out of range");
+    wi = float_array(wi, 3, "wi");
+    wo = float_array(wo, 3, "wo");
+    u2 = float_array(u2, 2, "u2");
+    uv = float_array(uv, 2, "uv");
+    u1 = u1.to(torch::kCPU, torch::kFloat32).contiguous().reshape({-1});
+    int64_t n = wi.size(0);
+    if (wo.size(0) != n || u1.size(0) != n || u2.size(0) != n || uv.size(0) != n)
+        fail("wi, wo, u1, u2 and uv must have the same length");
+    bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
+    return dbl ? bsdf_query_typed<double>(scene, params, index, wi, wo, u1, u2, uv)
+               : bsdf_query_typed<float>(scene, params, index, wi, wo, u1, u2, uv);
+}
+
+// ---- Scene construction ------------------------------------------------------------------
+
+int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
+             std::optional<torch::Tensor> normals, std::optional<torch::Tensor> uvs, int bsdf,
+             bool flip_normals) {
+    if (bsdf < 0 || bsdf >= int(scene.bsdfs.size())) fail("mesh BSDF index out of range");
+    positions = float_array(positions, 3, "positions");
+    if (faces.dim() != 2 || faces.size(1) != 3)
+        fail("faces must have shape [M, 3], got " + std::string(c10::str(faces.sizes())));
+    faces = faces.to(torch::kCPU, torch::kInt64).contiguous();
+    int64_t nv = positions.size(0), nf = faces.size(0);
+    if (nf == 0) fail("a mesh needs at least one face");
+    if (faces.min().item<int64_t>() < 0 || faces.max().item<int64_t>() >= nv)
+        fail("face indices must lie in [0, " + std::to_string(nv) + ")");
+    Geometry &g = scene.geometry;
+    uint32_t base = uint32_t(g.positions.size());
+    Shape shape;
+    shape.kind = ShapeKind::Mesh;
+    shape.bsdf = bsdf;
+    shape.flip_normals = flip_normals;
+    shape.tri_begin = uint32_t(g.triangles.size());
+    shape.tri_count = uint32_t(nf);
+    const float *p = positions.data_ptr<float>();
+    for (int64_t i = 0; i < nv; ++i) g.positions.push_back({p[3 * i], p[3 * i + 1], p[3 * i + 2]});
+    // Keep the optional vertex arrays the same length as positions.
+    g.normals.resize(g.positions.size());
+    g.uvs.resize(g.positions.size());
+    if (normals) {
+        torch::Tensor n = float_array(*normals, 3, "normals");
+        if (n.size(0) != nv) fail("normals must have one row per vertex");
+        const float *pn = n.data_ptr<float>();
+        for (int64_t i = 0; i < nv; ++i) g.normals[base + i] = {pn[3 * i], pn[3 * i + 1], pn[3 * i + 2]};
+        shape.has_normals = true;
+    }
+    if (uvs) {
+        torch::Tensor t = float_array(*uvs, 2, "uvs");
+        if (t.size(0) != nv) fail("uvs must have one row per vertex");
+        const float *pt = t.data_ptr<float>();
+        for (int64_t i = 0; i < nv; ++i) g.uvs[base + i] = {pt[2 * i], pt[2 * i + 1]};
+        shape.has_uvs = true;
+    }
+    const int64_t *f = faces.data_ptr<int64_t>();
+    uint32_t shape_index = uint32_t(g.shapes.size());
+    for (int64_t i = 0; i < nf; ++i)
+        g.triangles.push_back({{base + uint32_t(f[3 * i]), base + uint32_t(f[3 * i + 1]),
+                                base + uint32_t(f[3 * i + 2])},
+                               shape_index});
+    g.shapes.push_back(std::move(shape));
+    return int(shape_index);
+}
+
+int add_sphere(Scene &scene, const std::vector<float> &center, float radius,
+               const std::vector<std::vector<float>> &frame, int bsdf, bool flip_normals) {
+    if (bsdf < 0 || bsdf >= int(scene.bsdfs.size())) fail("sphere BSDF index out of range");
+    if (!(radius > 0.f)) fail("sphere radius must be positive");
+    if (frame.size() != 3) fail("sphere frame must be 3 axes");
+    Shape shape;
+    shape.kind = ShapeKind::Sphere;
+    shape.bsdf = bsdf;
+    shape.flip_normals = flip_normals;
+    shape.center = vec3(center, "center");
+    shape.radius = radius;
+    shape.local_x = normalize(vec3(frame[0], "frame axis"));
+    shape.local_y = normalize(vec3(frame[1], "frame axis"));
+    shape.local_z = normalize(vec3(frame[2], "frame axis"));
+    Geometry &g = scene.geometry;
+    g.spheres.push_back(uint32_t(g.shapes.size()));
+    g.shapes.push_back(shape);
+    return int(g.shapes.size()) - 1;
+}
+
+int add_bsdf(Scene &scene, const std::string &type, bool twosided, const py::object &reflectance,
+             const py::object &specular_reflectance, const py::object &specular_transmittance,
+             int alpha, const std::string &dist, float eta, bool nonlinear) {
+    BSDF b;
+    if (type == "diffuse") b.type = BSDFType::Diffuse;
+    else if (type == "conductor") b.type = BSDFType::Conductor;
+    else if (type == "roughconductor") b.type = BSDFType::RoughConductor;
+    else if (type == "dielectric") b.type = BSDFType::Dielectric;
+    else if (type == "roughplastic") b.type = BSDFType::RoughPlastic;
+    else fail("unknown BSDF type '" + type + "'");
+    b.twosided = twosided;
+    b.reflectance = texture_ref(reflectance);
+    b.specular_reflectance = texture_ref(specular_reflectance);
+    b.specular_transmittance = texture_ref(specular_transmittance);
+    b.alpha = alpha;
+    b.distribution = distribution(dist);
+    b.eta = eta;
+    b.nonlinear = nonlinear;
+    auto check = [&](const TextureRef &t, bool needed, const char *what) {
+        if (needed && !t.valid()) fail(type + " needs '" + what + "'");
+        if (t.param >= int(scene.params.size()) || t.bitmap >= int(scene.bitmaps.size()))
+            fail(type + ": '" + what + "' refers to an unknown parameter or bitmap");
+    };
+    bool diffuse_input = b.type == BSDFType::Diffuse || b.type == BSDFType::RoughPlastic;
+    check(b.reflectance, diffuse_input, "reflectance");
+    check(b.specular_reflectance, !diffuse_input || b.type == BSDFType::RoughPlastic,
+          "specular_reflectance");
+    check(b.specular_transmittance, b.type == BSDFType::Dielectric, "specular_transmittance");
+    bool rough = b.type == BSDFType::RoughConductor || b.type == BSDFType::RoughPlastic;
+    if (rough && (alpha < 0 || alpha >= int(scene.params.size()))) fail(type + " needs 'alpha'");
+    if ((b.type == BSDFType::Dielectric || b.type == BSDFType::RoughPlastic) && !(eta > 0.f))
+        fail(type + ": eta must be positive");
+    scene.bsdfs.push_back(b);
+    return int(scene.bsdfs.size()) - 1;
+}
+
+int add_emitter(Scene &scene, const std::string &type, int param, int shape,
+                const std::vector<float> &position) {
+    if (param < 0 || param >= int(scene.params.size())) fail("emitter parameter out of range");
+    Emitter e;
+    e.radiance = param;
+    if (type == "area") {
+        if (shape < 0 || shape >= int(scene.geometry.shapes.size())) fail("area emitter needs a shape");
+        if (scene.geometry.shapes[shape].emitter >= 0) fail("shape already has an emitter");
+        e.type = EmitterType::Area;
+        e.shape = shape;
+        scene.geometry.shapes[shape].emitter = int(scene.emitters.size());
+    } else if (type == "point") {
+        e.type = EmitterType::Point;
+        e.position = vec3(position, "point emitter position");
+    } else if (type == "constant") {
+        if (scene.environment >= 0) fail("only one constant emitter is supported");
+        e.type = EmitterType::Constant;
+        scene.environment = int(scene.emitters.size());
+    } else {
+        fail("unknown emitter type '" + type + "'");
+    }
+    scene.emitters.push_back(e);
+    return int(scene.emitters.size()) - 1;
+}
+
+int add_bitmap(Scene &scene, int param, int width, int height, int channels,
+               const std::string &wrap, bool nearest) {
+    if (param < 0 || param >= int(scene.params.size())) fail("bitmap parameter out of range");
+    if (channels != 1 && channels != 3) fail("bitmaps must have 1 or 3 channels");
+    if (int64_t(width) * height * channels != scene.params[param].numel)
+        fail("bitmap size does not match its parameter '" + scene.params[param].name + "'");
+    Bitmap bm;
+    bm.param = param;
+    bm.width = width;
+    bm.height = height;
+    bm.channels = channels;
+    bm.nearest = nearest;
+    if (wrap == "repeat") bm.wrap = WrapMode::Repeat;
+    else if (wrap == "mirror") bm.wrap = WrapMode::Mirror;
+    else if (wrap == "clamp") bm.wrap = WrapMode::Clamp;
+    else fail("unknown wrap_mode '" + wrap + "' (supported: repeat, mirror, clamp)");
+    scene.bitmaps.push_back(bm);
+    return int(scene.bitmaps.size()) - 1;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_C, m) {
+    m.doc() = "torch_rbpt's C++ core";
+    py::class_<Scene>(m, "Scene")
+        .def(py::init<>())
+        .def("add_param",
+             [](Scene &s, const std::string &name, int64_t numel) {
+                 s.params.push_back({name, numel});
+                 return int(s.params.size()) - 1;
+             })
+        .def("add_bitmap", &add_bitmap)
+        .def("add_bsdf", &add_bsdf, py::arg("type"), py::arg("twosided"), py::arg("reflectance"),
+             py::arg("specular_reflectance"), py::arg("specular_transmittance"), py::arg("alpha"),
+             py::arg("distribution"), py::arg("eta"), py::arg("nonlinear"))
+        .def("add_mesh", &add_mesh, py::arg("positions"), py::arg("faces"), py::arg("normals"),
+             py::arg("uvs"), py::arg("bsdf"), py::arg("flip_normals"))
+        .def("add_sphere", &add_sphere)
+        .def("add_emitter", &add_emitter)
+        .def("build", [](Scene &s) {
+            py::gil_scoped_release release;
+            s.build();
+        })
+        .def_property_readonly("triangle_count",
+                               [](const Scene &s) { return s.geometry.triangles.size(); })
+        .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
+        .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); });
+    m.def("render_fwd", &render_fwd, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
+          py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
+          py::arg("row_end") = -1);
+    m.def("bsdf_query", &bsdf_query);
+}

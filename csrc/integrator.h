@@ -1,0 +1,151 @@
+// The integrators, written once for any number type S: `path` (unidirectional path tracing
+// with next-event estimation, MIS and Russian roulette, as Mitsuba's `path`) and `direct`.
+// Sampling decisions (directions, emitter choice, roulette) use detached values only.
+#pragma once
+
+#include "sampler.h"
+#include "scene.h"
+
+namespace rbpt {
+
+enum class IntegratorType { Path, Direct };
+
+struct IntegratorSettings {
+    IntegratorType type = IntegratorType::Path;
+    int max_depth = -1;  ///< Mitsuba's meaning: 1 = emitters seen directly; -1 = unbounded
+    int rr_depth = 5;
+    int emitter_samples = 1, bsdf_samples = 1;  ///< direct
+};
+
+/// Power heuristic with Mitsuba's guard against non-finite weights.
+inline float mis_weight(float a, float b) {
+    a *= a;
+    b *= b;
+    float w = a / (a + b);
+    return std::isfinite(w) ? w : 0.f;
+}
+
+template <typename S>
+inline bool is_zero(const S &s) {
+    Color3f c = detach(s);
+    return c[0] == 0.f && c[1] == 0.f && c[2] == 0.f;
+}
+
+template <typename S>
+S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
+    const Scene &scene = ctx.scene;
+    S L(0.f), beta(1.f);
+    float eta = 1.f, prev_pdf = 1.f;
+    bool prev_delta = true;
+    Vec3 prev_p;
+    for (int depth = 0;; ++depth) {
+        // Find the next surface along the ray.
+        SurfaceInteraction si = scene.intersect(ray);
+
+        // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
+        int emitter = scene.emitter_at(si);
+        if (emitter >= 0) {
+            const Emitter &e = scene.emitters[emitter];
+            float em_pdf = prev_delta ? 0.f : emitter_pdf(ctx, e, prev_p, si);
+            L += beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(prev_pdf, em_pdf));
+        }
+
+        // Stop when the ray escaped or the next vertex would exceed max_depth.
+        if (!si.valid || (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth)) break;
+        int bsdf_index = scene.bsdf_at(si);
+        const BSDF &bsdf = scene.bsdfs[bsdf_index];
+
+        // Sample an emitter and add its MIS-weighted direct illumination.
+        if (bsdf.smooth()) {
+            auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
+            if (es && !is_zero(es->weight)) {
+                Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
+                if (!scene.occluded(shadow)) {
+                    Vec3 wo = si.to_local(es->d);
+                    S f = bsdf_eval<S>(bsdf, ctx, bsdf_index, si, wo);
+                    float w = es->delta ? 1.f
+                                        : mis_weight(es->pdf, bsdf_pdf(bsdf, ctx, bsdf_index, si, wo));
+                    L += beta * f * es->weight * real_t<S>(w);
+                }
+            }
+        }
+
+        // Sample the BSDF for the direction of the next ray.
+        float u1 = sampler.next_1d();
+        Vec2 u2 = sampler.next_2d();
+        auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
+        if (!bs) break;
+        beta *= bs->weight;
+        eta *= bs->eta;
+        prev_p = si.p;
+        prev_pdf = bs->pdf;
+        prev_delta = bs->delta;
+        ray = si.spawn_ray(si.to_world(bs->wo));
+
+        // Possibly terminate the path with Russian roulette.
+        float beta_max = max_component(detach(beta));
+        if (!(beta_max > 0.f)) break;
+        if (depth + 1 >= cfg.rr_depth) {
+            float q = std::min(beta_max * eta * eta, 0.95f);
+            if (sampler.next_1d() >= q) break;
+            beta = beta * real_t<S>(1.f / q);
+        }
+    }
+    return L;
+}
+
+template <typename S>
+S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
+    const Scene &scene = ctx.scene;
+    // Find the first surface and add the emission seen directly.
+    SurfaceInteraction si = scene.intersect(ray);
+    S L(0.f);
+    int emitter = scene.emitter_at(si);
+    if (emitter >= 0) L += emitter_eval<S>(ctx, scene.emitters[emitter], si);
+    if (!si.valid) return L;
+    int bsdf_index = scene.bsdf_at(si);
+    const BSDF &bsdf = scene.bsdfs[bsdf_index];
+    float n_e = float(cfg.emitter_samples), n_b = float(cfg.bsdf_samples);
+    float frac_e = n_e / (n_e + n_b), frac_b = n_b / (n_e + n_b);
+
+    // Sample the emitters, MIS-weighted against BSDF sampling.
+    if (bsdf.smooth()) {
+        for (int i = 0; i < cfg.emitter_samples; ++i) {
+            auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
+            if (!es || is_zero(es->weight)) continue;
+            Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
+            if (scene.occluded(shadow)) continue;
+            Vec3 wo = si.to_local(es->d);
+            S f = bsdf_eval<S>(bsdf, ctx, bsdf_index, si, wo);
+            float w = es->delta ? 1.f
+                                : mis_weight(es->pdf * frac_e,
+                                             bsdf_pdf(bsdf, ctx, bsdf_index, si, wo) * frac_b);
+            L += f * es->weight * real_t<S>(w / n_e);
+        }
+    }
+
+    // Sample the BSDF and add the emission found, MIS-weighted against emitter sampling.
+    for (int i = 0; i < cfg.bsdf_samples; ++i) {
+        float u1 = sampler.next_1d();
+        Vec2 u2 = sampler.next_2d();
+        auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
+        if (!bs) continue;
+        Ray next = si.spawn_ray(si.to_world(bs->wo));
+        SurfaceInteraction hit = scene.intersect(next);
+        int e = scene.emitter_at(hit);
+        if (e < 0) continue;
+        const Emitter &em = scene.emitters[e];
+        float em_pdf = bs->delta ? 0.f : emitter_pdf(ctx, em, si.p, hit);
+        float w = mis_weight(bs->pdf * frac_b, em_pdf * frac_e);
+        L += bs->weight * emitter_eval<S>(ctx, em, hit) * real_t<S>(w / n_b);
+    }
+    return L;
+}
+
+template <typename S>
+S li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, const Ray &ray, Sampler &sampler) {
+    return cfg.type == IntegratorType::Path ? path_li(ctx, cfg, ray, sampler)
+                                            : direct_li(ctx, cfg, ray, sampler);
+}
+
+}  // namespace rbpt

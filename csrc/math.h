@@ -1,0 +1,143 @@
+// Small vector math for the renderer core: geometry in float (Vec2, Vec3, Frame, Ray) and the
+// RGB spectrum type that the path tracer is templated on.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+namespace rbpt {
+
+constexpr float Pi = 3.14159265358979323846f;
+constexpr float InvPi = 0.31830988618379067154f;
+constexpr float InvTwoPi = 0.15915494309189533577f;
+constexpr float InvFourPi = 0.07957747154594766788f;
+constexpr float Infinity = std::numeric_limits<float>::infinity();
+/// Mitsuba's ray epsilon for float: 1500 ulps of 1 (math::RayEpsilon).
+constexpr float RayEpsilon = 1500.f * 5.9604644775390625e-8f;
+constexpr float ShadowEpsilon = 10.f * RayEpsilon;
+
+struct Vec2 {
+    float x = 0, y = 0;
+};
+
+struct Vec3 {
+    float x = 0, y = 0, z = 0;
+    Vec3() = default;
+    constexpr Vec3(float x, float y, float z) : x(x), y(y), z(z) {}
+    float operator[](int i) const { return i == 0 ? x : (i == 1 ? y : z); }
+    float &operator[](int i) { return i == 0 ? x : (i == 1 ? y : z); }
+    Vec3 operator-() const { return {-x, -y, -z}; }
+    Vec3 &operator+=(const Vec3 &b) { x += b.x; y += b.y; z += b.z; return *this; }
+};
+
+inline Vec3 operator+(const Vec3 &a, const Vec3 &b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+inline Vec3 operator-(const Vec3 &a, const Vec3 &b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+inline Vec3 operator*(const Vec3 &a, const Vec3 &b) { return {a.x * b.x, a.y * b.y, a.z * b.z}; }
+inline Vec3 operator*(const Vec3 &a, float s) { return {a.x * s, a.y * s, a.z * s}; }
+inline Vec3 operator*(float s, const Vec3 &a) { return a * s; }
+inline Vec3 operator/(const Vec3 &a, float s) { return a * (1.f / s); }
+inline float dot(const Vec3 &a, const Vec3 &b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline Vec3 cross(const Vec3 &a, const Vec3 &b) {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+inline float squared_norm(const Vec3 &a) { return dot(a, a); }
+inline float norm(const Vec3 &a) { return std::sqrt(dot(a, a)); }
+inline Vec3 normalize(const Vec3 &a) { return a / norm(a); }
+inline Vec3 vmin(const Vec3 &a, const Vec3 &b) {
+    return {std::min(a.x, b.x), std::min(a.y, b.y), std::min(a.z, b.z)};
+}
+inline Vec3 vmax(const Vec3 &a, const Vec3 &b) {
+    return {std::max(a.x, b.x), std::max(a.y, b.y), std::max(a.z, b.z)};
+}
+inline float max_abs_component(const Vec3 &a) {
+    return std::max(std::abs(a.x), std::max(std::abs(a.y), std::abs(a.z)));
+}
+inline Vec3 reflect(const Vec3 &wi, const Vec3 &m) { return 2.f * dot(wi, m) * m - wi; }
+inline float safe_sqrt(float x) { return std::sqrt(std::max(x, 0.f)); }
+
+/// Orthonormal basis around a unit normal n (Duff et al. 2017, branchless).
+struct Frame {
+    Vec3 s, t, n;
+    Frame() = default;
+    explicit Frame(const Vec3 &n_) : n(n_) {
+        float sign = std::copysign(1.f, n.z);
+        float a = -1.f / (sign + n.z), b = n.x * n.y * a;
+        s = {1.f + sign * n.x * n.x * a, sign * b, -sign * n.x};
+        t = {b, sign + n.y * n.y * a, -n.y};
+    }
+    Vec3 to_local(const Vec3 &v) const { return {dot(v, s), dot(v, t), dot(v, n)}; }
+    Vec3 to_world(const Vec3 &v) const { return s * v.x + t * v.y + n * v.z; }
+};
+
+struct Ray {
+    Vec3 o, d;
+    float tmin = 0.f, tmax = Infinity;
+};
+
+/// An RGB triple of number type T; the spectrum type of the float and double renderers.
+template <typename T>
+struct RGB {
+    T v[3];
+    RGB() : v{T(0), T(0), T(0)} {}
+    RGB(T s) : v{s, s, s} {}  // NOLINT: broadcasting a scalar is intended
+    RGB(T r, T g, T b) : v{r, g, b} {}
+    const T &operator[](int i) const { return v[i]; }
+    T &operator[](int i) { return v[i]; }
+    RGB &operator+=(const RGB &b) { for (int i = 0; i < 3; ++i) v[i] += b.v[i]; return *this; }
+    RGB &operator*=(const RGB &b) { for (int i = 0; i < 3; ++i) v[i] *= b.v[i]; return *this; }
+};
+
+#define RBPT_RGB_BINOP(op)                                                              \
+    template <typename T>                                                               \
+    inline RGB<T> operator op(const RGB<T> &a, const RGB<T> &b) {                       \
+        return {a.v[0] op b.v[0], a.v[1] op b.v[1], a.v[2] op b.v[2]};                  \
+    }                                                                                   \
+    template <typename T>                                                               \
+    inline RGB<T> operator op(const RGB<T> &a, T s) {                                   \
+        return {a.v[0] op s, a.v[1] op s, a.v[2] op s};                                 \
+    }                                                                                   \
+    template <typename T>                                                               \
+    inline RGB<T> operator op(T s, const RGB<T> &a) {                                   \
+        return {s op a.v[0], s op a.v[1], s op a.v[2]};                                 \
+    }
+RBPT_RGB_BINOP(+)
+RBPT_RGB_BINOP(-)
+RBPT_RGB_BINOP(*)
+RBPT_RGB_BINOP(/)
+#undef RBPT_RGB_BINOP
+
+/// Plain float colour for detached quantities (sampling decisions, Russian roulette).
+using Color3f = RGB<float>;
+
+/// Number-type traits: Real is the scalar type that parameters such as roughness take, and
+/// detach() drops any derivative information. Specialised by the autodiff types.
+template <typename S>
+struct SpectrumTraits;
+
+template <typename T>
+struct SpectrumTraits<RGB<T>> {
+    using Real = T;
+    static Color3f detach(const RGB<T> &s) {
+        return {float(s.v[0]), float(s.v[1]), float(s.v[2])};
+    }
+    static bool is_finite(const RGB<T> &s) {
+        return std::isfinite(s.v[0]) && std::isfinite(s.v[1]) && std::isfinite(s.v[2]);
+    }
+};
+
+template <typename S>
+using real_t = typename SpectrumTraits<S>::Real;
+
+template <typename S>
+inline Color3f detach(const S &s) { return SpectrumTraits<S>::detach(s); }
+
+/// Value of a scalar of any number type, without derivatives (overloaded by autodiff types).
+inline float detach_real(float x) { return x; }
+inline float detach_real(double x) { return float(x); }
+
+inline float max_component(const Color3f &c) { return std::max(c.v[0], std::max(c.v[1], c.v[2])); }
+inline float mean(const Color3f &c) { return (c.v[0] + c.v[1] + c.v[2]) / 3.f; }
+
+}  // namespace rbpt

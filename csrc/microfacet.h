@@ -1,0 +1,68 @@
+// Isotropic microfacet distributions (Beckmann and GGX) with Smith shadowing and sampling of
+// visible normals, after Mitsuba's MicrofacetDistribution. D and G1 are templated on the
+// roughness type R (so that roughness can be differentiated); sampling is detached (float).
+//
+// Unlike Mitsuba, the Beckmann G1 is the exact Smith term (with erf) instead of Mitsuba's
+// rational approximation (relative difference below 0.35%), so that the density of the
+// visible-normal sampler integrates to one exactly.
+#pragma once
+
+#include <cmath>
+
+#include "math.h"
+
+namespace rbpt {
+
+enum class MicrofacetType { Beckmann, GGX };
+
+/// Normal distribution D(m) of microfacet normal m (local frame, z up).
+template <typename R>
+R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
+    using std::exp;
+    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
+    if (m.z <= 0.f) return R(0.f);
+    R a2 = alpha * alpha;
+    R result;
+    if (type == MicrofacetType::Beckmann) {
+        result = exp(-(xy2 / cos2) / a2) / (Pi * a2 * (cos2 * cos2));
+    } else {
+        R t = xy2 / a2 + cos2;
+        result = 1.f / (Pi * a2 * t * t);
+    }
+    // As Mitsuba: drop values too small to matter, avoiding underflow downstream.
+    return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
+}
+
+/// Smith's masking function G1(v, m) for direction v and microfacet normal m.
+template <typename R>
+R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
+    using std::erf;
+    using std::exp;
+    using std::sqrt;
+    if (dot(v, m) * v.z <= 0.f) return R(0.f);  // the back of a microfacet is never seen
+    float xy2 = v.x * v.x + v.y * v.y;
+    if (xy2 == 0.f) return R(1.f);
+    float tan2 = xy2 / (v.z * v.z);
+    if (type == MicrofacetType::Beckmann) {
+        R a = 1.f / (alpha * std::sqrt(tan2));
+        R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
+        return 1.f / (1.f + lambda);
+    }
+    return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
+}
+
+/// Density of sample_visible_normal(): G1(wi, m) |wi.m| D(m) / cos(wi).
+template <typename R>
+R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const Vec3 &m) {
+    if (wi.z <= 0.f) return R(0.f);
+    return smith_G1(type, alpha, wi, m) * std::abs(dot(wi, m)) * microfacet_D(type, alpha, m) /
+           wi.z;
+}
+
+/// Sample a microfacet normal visible from wi (wi.z > 0), distributed as visible_normal_pdf.
+Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u);
+
+/// Inverse error function (double precision).
+double erfinv(double x);
+
+}  // namespace rbpt

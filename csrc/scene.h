@@ -1,0 +1,83 @@
+// The scene: geometry and its BVH, materials, emitters, bitmaps and the registry of
+// parameters, plus the per-render context that binds parameter values of a number type.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "bsdfs.h"
+#include "bvh.h"
+#include "emitters.h"
+#include "params.h"
+#include "shapes.h"
+#include "textures.h"
+
+namespace rbpt {
+
+struct ParamInfo {
+    std::string name;  ///< Mitsuba traverse key, for error messages
+    int64_t numel = 0;
+};
+
+class Scene {
+public:
+    Geometry geometry;
+    BVH bvh;
+    std::vector<BSDF> bsdfs;
+    std::vector<Emitter> emitters;
+    std::vector<Bitmap> bitmaps;
+    std::vector<ParamInfo> params;
+    int environment = -1;  ///< index of the constant emitter, if any
+
+    /// Build acceleration structures and sampling tables; call once after adding everything.
+    void build();
+
+    SurfaceInteraction intersect(const Ray &ray) const {
+        Hit hit;
+        bvh.intersect(ray, &hit);
+        return geometry.interaction(ray, hit);
+    }
+    bool occluded(const Ray &ray) const { return bvh.occluded(ray); }
+
+    /// Emitter attached to the surface hit, or the environment when the ray escaped.
+    int emitter_at(const SurfaceInteraction &si) const {
+        return si.valid ? geometry.shapes[si.shape].emitter : environment;
+    }
+    int bsdf_at(const SurfaceInteraction &si) const { return geometry.shapes[si.shape].bsdf; }
+};
+
+/// Derived per-BSDF data for the current parameter values (sampling weights, roughplastic's
+/// tables, which are cached process-wide by (distribution, alpha, eta)).
+std::vector<BSDFState> prepare_bsdfs(const Scene &scene, const std::vector<float> &alphas,
+                                     const std::vector<float> &diffuse_means,
+                                     const std::vector<float> &specular_means);
+
+/// Everything a render reads: the scene and the parameter values of number type S.
+template <typename S>
+struct RenderContext {
+    const Scene &scene;
+    Params<S> params;
+    const Bitmap *bitmaps = nullptr;
+    std::vector<BSDFState> bsdf_state;
+
+    RenderContext(const Scene &scene, Params<S> params_) : scene(scene), params(std::move(params_)) {
+        bitmaps = scene.bitmaps.data();
+        size_t n = scene.bsdfs.size();
+        std::vector<float> alphas(n, 0.1f), dmeans(n, 0.5f), smeans(n, 1.f);
+        for (size_t i = 0; i < n; ++i) {
+            const BSDF &b = scene.bsdfs[i];
+            if (b.type != BSDFType::RoughPlastic) continue;
+            alphas[i] = detach_real(params.real(b.alpha));
+            dmeans[i] = texture_mean(b.reflectance);
+            smeans[i] = texture_mean(b.specular_reflectance);
+        }
+        bsdf_state = prepare_bsdfs(scene, alphas, dmeans, smeans);
+    }
+
+private:
+    float texture_mean(const TextureRef &t) const {
+        return params.mean(t.bitmap >= 0 ? scene.bitmaps[t.bitmap].param : t.param);
+    }
+};
+
+}  // namespace rbpt

@@ -1,0 +1,158 @@
+#include "shapes.h"
+
+#include "warp.h"
+
+namespace rbpt {
+
+SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
+    SurfaceInteraction si;
+    if (!hit.valid()) return si;
+    si.valid = true;
+    si.t = hit.t;
+    Vec3 ns;
+    if (is_triangle(hit.prim)) {
+        const Triangle &tri = triangles[hit.prim];
+        const Shape &shape = shapes[tri.shape];
+        si.shape = int(tri.shape);
+        float b1 = hit.u, b2 = hit.v, b0 = 1.f - b1 - b2;
+        const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
+        si.p = p0 * b0 + p1 * b1 + p2 * b2;
+        si.n = normalize(cross(p1 - p0, p2 - p0));
+        if (shape.has_normals) {
+            ns = normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b1 + normals[tri.v[2]] * b2);
+        } else {
+            ns = si.n;
+        }
+        if (shape.has_uvs) {
+            const Vec2 &t0 = uvs[tri.v[0]], &t1 = uvs[tri.v[1]], &t2 = uvs[tri.v[2]];
+            si.uv = {t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
+        } else {
+            si.uv = {b1, b2};  // as Mitsuba: barycentrics when the mesh has no texcoords
+        }
+        if (shape.flip_normals) {
+            si.n = -si.n;
+            ns = -ns;
+        }
+    } else {
+        const Shape &shape = sphere_shape(hit.prim);
+        si.shape = int(spheres[hit.prim - triangles.size()]);
+        Vec3 local = normalize(ray.o + ray.d * hit.t - shape.center);
+        si.p = shape.center + local * shape.radius;
+        si.n = local;
+        // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
+        Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};
+        float phi = std::atan2(q.y, q.x);
+        if (phi < 0.f) phi += 2.f * Pi;
+        si.uv = {phi * InvTwoPi, std::acos(std::clamp(q.z, -1.f, 1.f)) * InvPi};
+        if (shape.flip_normals) si.n = -si.n;
+        ns = si.n;
+    }
+    si.sh_frame = Frame(ns);
+    si.wi = si.to_local(-ray.d);
+    return si;
+}
+
+static float solid_angle_pdf(float pdf_area, const Vec3 &ref, const Vec3 &p, const Vec3 &n) {
+    Vec3 d = p - ref;
+    float dist2 = squared_norm(d);
+    float cos = std::abs(dot(n, d)) / std::sqrt(dist2);
+    return cos > 0.f ? pdf_area * dist2 / cos : 0.f;
+}
+
+DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec2 u) const {
+    const Shape &shape = shapes[shape_index];
+    DirectionSample ds;
+    if (shape.kind == ShapeKind::Mesh) {
+        // Pick a triangle proportionally to its area, reusing u.x, then a uniform point on it.
+        const std::vector<float> &cdf = shape.tri_cdf;
+        auto it = std::upper_bound(cdf.begin() + 1, cdf.end(), u.x);
+        uint32_t local = uint32_t(std::min<std::ptrdiff_t>(it - cdf.begin() - 1, std::ptrdiff_t(shape.tri_count) - 1));
+        float width = cdf[local + 1] - cdf[local];
+        u.x = std::min(width > 0.f ? (u.x - cdf[local]) / width : 0.f, 0.99999994f);
+        const Triangle &tri = triangles[shape.tri_begin + local];
+        Vec2 b = warp::square_to_uniform_triangle(u);
+        float b0 = 1.f - b.x - b.y;
+        const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
+        ds.p = p0 * b0 + p1 * b.x + p2 * b.y;
+        ds.n = shape.has_normals ? normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b.x +
+                                             normals[tri.v[2]] * b.y)
+                                 : normalize(cross(p1 - p0, p2 - p0));
+        if (shape.flip_normals) ds.n = -ds.n;
+        ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
+    } else {
+        Vec3 dc = shape.center - ref;
+        float dc2 = squared_norm(dc);
+        if (dc2 > shape.radius * shape.radius) {
+            // Outside: sample the cone of directions subtended by the sphere (as Mitsuba).
+            float inv_dc = 1.f / std::sqrt(dc2);
+            float sin_max = shape.radius * inv_dc, sin_max2 = sin_max * sin_max;
+            float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
+            // Taylor expansion for small cones, where 1 - cos_max cancels badly.
+            float sin2 = sin_max2 > 0.00068523f
+                             ? 1.f - std::pow((cos_max - 1.f) * u.x + 1.f, 2.f)
+                             : sin_max2 * u.x;
+            float cos = safe_sqrt(1.f - sin2);
+            float cos_alpha = sin2 * inv_sin_max +
+                              cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
+            float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
+            float phi = 2.f * Pi * u.y;
+            Vec3 local{std::cos(phi) * sin_alpha, std::sin(phi) * sin_alpha, cos_alpha};
+            Vec3 d = Frame(dc * -inv_dc).to_world(local);
+            ds.p = shape.center + d * shape.radius;
+            ds.n = d;
+            ds.pdf = sin_max2 > 0.00068523f ? warp::square_to_uniform_cone_pdf(cos_max)
+                                            : 1.f / (Pi * sin_max2);
+        } else {
+            Vec3 d = warp::square_to_uniform_sphere(u);
+            ds.p = shape.center + d * shape.radius;
+            ds.n = d;
+            ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
+        }
+        if (shape.flip_normals) ds.n = -ds.n;
+    }
+    ds.d = ds.p - ref;
+    ds.dist = norm(ds.d);
+    if (ds.dist == 0.f) {
+        ds.pdf = 0.f;
+        return ds;
+    }
+    ds.d = ds.d / ds.dist;
+    return ds;
+}
+
+float Geometry::pdf_direction(int shape_index, const Vec3 &ref, const Vec3 &p,
+                              const Vec3 &n) const {
+    const Shape &shape = shapes[shape_index];
+    if (shape.kind == ShapeKind::Sphere) {
+        float dc2 = squared_norm(shape.center - ref);
+        if (dc2 > shape.radius * shape.radius) {
+            float sin_max2 = shape.radius * shape.radius / dc2;
+            return sin_max2 > 0.00068523f
+                       ? warp::square_to_uniform_cone_pdf(safe_sqrt(1.f - sin_max2))
+                       : 1.f / (Pi * sin_max2);
+        }
+    }
+    return solid_angle_pdf(1.f / shape.area, ref, p, n);
+}
+
+void Geometry::prepare() {
+    for (Shape &shape : shapes) {
+        if (shape.kind == ShapeKind::Sphere) {
+            shape.area = 4.f * Pi * shape.radius * shape.radius;
+            continue;
+        }
+        shape.tri_cdf.assign(shape.tri_count + 1, 0.f);
+        double sum = 0.0;
+        for (uint32_t i = 0; i < shape.tri_count; ++i) {
+            const Triangle &tri = triangles[shape.tri_begin + i];
+            const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]],
+                       &p2 = positions[tri.v[2]];
+            sum += 0.5 * norm(cross(p1 - p0, p2 - p0));
+            shape.tri_cdf[i + 1] = float(sum);
+        }
+        shape.area = float(sum);
+        for (float &c : shape.tri_cdf) c = sum > 0.0 ? float(c / sum) : 0.f;
+    }
+}
+
+}  // namespace rbpt

@@ -1,0 +1,175 @@
+// Shapes: triangle meshes and analytic spheres. Ray-primitive intersection, the surface
+// interaction at a hit, and sampling points on shapes for area emitters.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "math.h"
+
+namespace rbpt {
+
+enum class ShapeKind { Mesh, Sphere };
+
+struct Shape {
+    ShapeKind kind = ShapeKind::Mesh;
+    int bsdf = -1;
+    int emitter = -1;
+    bool flip_normals = false;
+    float area = 0.f;
+    // Mesh: a range of Geometry::triangles and a CDF over their areas for sampling.
+    uint32_t tri_begin = 0, tri_count = 0;
+    bool has_normals = false, has_uvs = false;
+    std::vector<float> tri_cdf;
+    // Sphere: centre, radius and the rotation to its local frame (for uv).
+    Vec3 center;
+    float radius = 1.f;
+    Vec3 local_x{1, 0, 0}, local_y{0, 1, 0}, local_z{0, 0, 1};
+};
+
+struct Triangle {
+    uint32_t v[3];
+    uint32_t shape;
+};
+
+/// The nearest hit found by the BVH: primitive id and its parametric coordinates.
+struct Hit {
+    float t = Infinity;
+    uint32_t prim = ~0u;
+    float u = 0.f, v = 0.f;  ///< barycentrics of vertices 1 and 2 (triangles)
+    bool valid() const { return prim != ~0u; }
+};
+
+/// Everything the integrator needs to know about a surface point.
+struct SurfaceInteraction {
+    bool valid = false;
+    float t = Infinity;
+    Vec3 p;
+    Vec3 n;        ///< geometric normal (unit, flipped with flip_normals)
+    Frame sh_frame;  ///< shading frame around the interpolated normal
+    Vec2 uv;
+    Vec3 wi;       ///< direction towards the ray origin, in the shading frame
+    int shape = -1;
+
+    Vec3 to_local(const Vec3 &v) const { return sh_frame.to_local(v); }
+    Vec3 to_world(const Vec3 &v) const { return sh_frame.to_world(v); }
+
+    /// Offset the origin along the geometric normal to the side of `d` (Mitsuba's offset_p).
+    Vec3 offset_p(const Vec3 &d) const {
+        float mag = (1.f + max_abs_component(p)) * RayEpsilon;
+        return p + n * std::copysign(mag, dot(n, d));
+    }
+    Ray spawn_ray(const Vec3 &d) const {
+        Ray r;
+        r.o = offset_p(d);
+        r.d = d;
+        return r;
+    }
+    Ray spawn_ray_to(const Vec3 &target) const {
+        Ray r;
+        r.o = offset_p(target - p);
+        Vec3 d = target - r.o;
+        float dist = norm(d);
+        r.d = d / dist;
+        r.tmax = dist * (1.f - ShadowEpsilon);
+        return r;
+    }
+};
+
+/// A point sampled on a shape as seen from a reference point, with its solid-angle density.
+struct DirectionSample {
+    Vec3 p, n, d;
+    float dist = 0.f;
+    float pdf = 0.f;
+};
+
+/// Per-ray constants of the watertight ray-triangle test (Woop, Benthin and Wald 2013).
+struct RayPrecomp {
+    int kx, ky, kz;
+    float sx, sy, sz;
+    explicit RayPrecomp(const Vec3 &d) {
+        float ax = std::abs(d.x), ay = std::abs(d.y), az = std::abs(d.z);
+        kz = (ax > ay) ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2);
+        kx = (kz + 1) % 3;
+        ky = (kx + 1) % 3;
+        if (d[kz] < 0.f) std::swap(kx, ky);
+        sx = d[kx] / d[kz];
+        sy = d[ky] / d[kz];
+        sz = 1.f / d[kz];
+    }
+};
+
+/// Watertight ray-triangle intersection: no ray slips between triangles sharing an edge.
+/// On a hit in (tmin, tmax) returns true with t and barycentrics (u, v) of b and c.
+inline bool intersect_triangle(const Ray &ray, const RayPrecomp &pc, const Vec3 &a, const Vec3 &b,
+                               const Vec3 &c, float tmin, float tmax, float *t_out, float *u_out,
+                               float *v_out) {
+    Vec3 A = a - ray.o, B = b - ray.o, C = c - ray.o;
+    float ax = A[pc.kx] - pc.sx * A[pc.kz], ay = A[pc.ky] - pc.sy * A[pc.kz];
+    float bx = B[pc.kx] - pc.sx * B[pc.kz], by = B[pc.ky] - pc.sy * B[pc.kz];
+    float cx = C[pc.kx] - pc.sx * C[pc.kz], cy = C[pc.ky] - pc.sy * C[pc.kz];
+    float U = cx * by - cy * bx, V = ax * cy - ay * cx, W = bx * ay - by * ax;
+    if (U == 0.f || V == 0.f || W == 0.f) {
+        // Edge case: redo the 2D edge tests in double so that shared edges stay watertight.
+        U = float(double(cx) * by - double(cy) * bx);
+        V = float(double(ax) * cy - double(ay) * cx);
+        W = float(double(bx) * ay - double(by) * ax);
+    }
+    if ((U < 0.f || V < 0.f || W < 0.f) && (U > 0.f || V > 0.f || W > 0.f)) return false;
+    float det = U + V + W;
+    if (det == 0.f) return false;
+    float az = pc.sz * A[pc.kz], bz = pc.sz * B[pc.kz], cz = pc.sz * C[pc.kz];
+    float T = U * az + V * bz + W * cz;
+    float inv_det = 1.f / det;
+    float t = T * inv_det;
+    if (!(t > tmin && t < tmax)) return false;
+    *t_out = t;
+    *u_out = V * inv_det;
+    *v_out = W * inv_det;
+    return true;
+}
+
+/// Ray-sphere intersection in double precision; the nearest root in (tmin, tmax).
+inline bool intersect_sphere(const Ray &ray, const Vec3 &center, float radius, float tmin,
+                             float tmax, float *t_out) {
+    double ox = double(ray.o.x) - center.x, oy = double(ray.o.y) - center.y,
+           oz = double(ray.o.z) - center.z;
+    double dx = ray.d.x, dy = ray.d.y, dz = ray.d.z;
+    double A = dx * dx + dy * dy + dz * dz;
+    double B = 2.0 * (ox * dx + oy * dy + oz * dz);
+    double C = ox * ox + oy * oy + oz * oz - double(radius) * radius;
+    double disc = B * B - 4.0 * A * C;
+    if (disc < 0.0) return false;
+    double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+    double t0 = q / A, t1 = (q != 0.0) ? C / q : t0;
+    if (t0 > t1) std::swap(t0, t1);
+    if (t0 > tmin && t0 < tmax) { *t_out = float(t0); return true; }
+    if (t1 > tmin && t1 < tmax) { *t_out = float(t1); return true; }
+    return false;
+}
+
+/// Scene geometry: global vertex arrays, triangles, spheres and the shapes they belong to.
+struct Geometry {
+    std::vector<Vec3> positions, normals;
+    std::vector<Vec2> uvs;
+    std::vector<Triangle> triangles;
+    std::vector<uint32_t> spheres;  ///< shape index of each sphere primitive
+    std::vector<Shape> shapes;
+
+    uint32_t primitive_count() const { return uint32_t(triangles.size() + spheres.size()); }
+    bool is_triangle(uint32_t prim) const { return prim < triangles.size(); }
+    const Shape &sphere_shape(uint32_t prim) const {
+        return shapes[spheres[prim - triangles.size()]];
+    }
+
+    /// Complete a BVH hit into a surface interaction.
+    SurfaceInteraction interaction(const Ray &ray, const Hit &hit) const;
+    /// Sample a point on `shape` as seen from `ref`; pdf in solid angle at `ref`.
+    DirectionSample sample_direction(int shape, const Vec3 &ref, Vec2 u) const;
+    /// Solid-angle density of sample_direction() for the point `p` with normal `n` it hit.
+    float pdf_direction(int shape, const Vec3 &ref, const Vec3 &p, const Vec3 &n) const;
+    /// Finish building: areas and sampling CDFs. Call once after all shapes are added.
+    void prepare();
+};
+
+}  // namespace rbpt

@@ -1,0 +1,49 @@
+"""Shared fixtures: paths to the public scenes and small scenes built in code."""
+from pathlib import Path
+
+import pytest
+import torch
+
+import torch_rbpt as tr
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "scenes"
+REFERENCES = Path(__file__).resolve().parent / "references"
+
+
+def bsdf_scene(bsdf: dict, dtype=torch.float32):
+    """A scene holding one BSDF (native index 0), for direct BSDF queries."""
+    return tr.load_dict({"type": "scene", "mat": bsdf}, dtype=dtype)
+
+
+def query_bsdf(scene, wi, wo=None, u1=None, u2=None, index=0):
+    """Evaluate/sample BSDF `index` of `scene` for local directions.
+    Returns (eval (N,3), pdf (N,), sampled wo (N,3), sampled pdf (N,), weight (N,3), delta (N,))."""
+    wi = torch.as_tensor(wi, dtype=torch.float32).reshape(-1, 3)
+    n = wi.shape[0]
+    wo = wi if wo is None else torch.as_tensor(wo, dtype=torch.float32).reshape(-1, 3)
+    u1 = torch.full((n,), 0.5) if u1 is None else u1
+    u2 = torch.full((n, 2), 0.5) if u2 is None else u2
+    uv = torch.full((n, 2), 0.5)
+    return tr._C.bsdf_query(scene._native, scene.param_list(), index, wi, wo, u1, u2, uv)
+
+
+def furnace_scene(albedo: float, res: int = 8, dtype=torch.float32, max_depth: int = -1):
+    """A diffuse unit sphere of the given albedo inside a uniform white environment."""
+    return tr.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": max_depth},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": tr.Transform.look_at([0, 0, 5], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "rfilter": {"type": "box"}}},
+        "ball": {"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": albedo}},
+        "sky": {"type": "constant", "radiance": 1.0},
+    }, dtype=dtype)
+
+
+@pytest.fixture
+def shared():
+    if not SHARED.exists():
+        pytest.skip(f"shared scenes not found at {SHARED}")
+    return SHARED

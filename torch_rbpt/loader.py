@@ -1,0 +1,541 @@
+"""Build a Scene from Mitsuba 3's dict format (the XML reader produces the same format).
+
+Supports the subset of Mitsuba 3 listed in the README, with Mitsuba's defaults and parameter
+names. Anything else is a SceneError naming the plugin or parameter, where it was given, and
+what is supported.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import _C, meshes
+from .images import read_image
+from .mitsuba_xml import SceneError, read_xml
+from .scene import Film, Integrator, Scene, Sensor
+from .transform import Transform, as_matrix
+
+CATEGORY = {
+    "diffuse": "bsdf", "twosided": "bsdf", "conductor": "bsdf", "roughconductor": "bsdf",
+    "dielectric": "bsdf", "roughplastic": "bsdf",
+    "obj": "shape", "ply": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape",
+    "area": "emitter", "point": "emitter", "constant": "emitter",
+    "bitmap": "texture",
+    "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
+    "gaussian": "rfilter", "independent": "sampler",
+    "path": "integrator", "prb": "integrator", "direct": "integrator",
+}
+
+# Properties each plugin accepts (besides nested plugins of the categories it takes).
+PROPERTIES = {
+    "diffuse": {"reflectance"},
+    "twosided": set(),
+    "conductor": {"specular_reflectance", "material"},
+    "roughconductor": {"specular_reflectance", "material", "alpha", "distribution", "sample_visible"},
+    "dielectric": {"int_ior", "ext_ior", "specular_reflectance", "specular_transmittance"},
+    "roughplastic": {"diffuse_reflectance", "specular_reflectance", "alpha", "distribution",
+                     "int_ior", "ext_ior", "nonlinear", "sample_visible"},
+    "obj": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
+    "ply": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
+    "rectangle": {"flip_normals", "to_world"},
+    "cube": {"flip_normals", "to_world"},
+    "sphere": {"center", "radius", "flip_normals", "to_world"},
+    "area": {"radiance"},
+    "point": {"position", "intensity", "to_world"},
+    "constant": {"radiance"},
+    "bitmap": {"filename", "raw", "filter_type", "wrap_mode"},
+    "perspective": {"fov", "fov_axis", "focal_length", "near_clip", "far_clip", "focus_distance",
+                    "to_world", "principal_point_offset_x", "principal_point_offset_y"},
+    "hdrfilm": {"width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
+                "pixel_format", "component_format", "file_format", "sample_border"},
+    "box": set(), "tent": {"radius"}, "gaussian": {"stddev"},
+    "independent": {"sample_count", "seed"},
+    "path": {"max_depth", "rr_depth", "hide_emitters"},
+    "prb": {"max_depth", "rr_depth", "hide_emitters"},
+    "direct": {"emitter_samples", "bsdf_samples", "shading_samples", "hide_emitters"},
+}
+
+# Named indices of refraction (Mitsuba's ior.h).
+IOR = {
+    "vacuum": 1.0, "helium": 1.00004, "hydrogen": 1.00013, "air": 1.00028,
+    "carbon dioxide": 1.00045, "water": 1.3330, "acetone": 1.36, "ethanol": 1.361,
+    "carbon tetrachloride": 1.461, "glycerol": 1.4729, "benzene": 1.501,
+    "silicone oil": 1.52045, "bromine": 1.661, "water ice": 1.31, "fused quartz": 1.458,
+    "pyrex": 1.470, "acrylic glass": 1.49, "polypropylene": 1.49, "bk7": 1.5046,
+    "sodium chloride": 1.544, "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
+}
+
+
+def _where(node) -> str:
+    return node.get("__where__", "<dict>") if isinstance(node, dict) else "<dict>"
+
+
+def _is_plugin(value) -> bool:
+    return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb",)
+
+
+class _Builder:
+    def __init__(self, scene: dict, base_dir: Path, dtype: torch.dtype):
+        self.search = [base_dir] + list(scene.get("__search__", []))
+        self.dtype = dtype
+        self.native = _C.Scene()
+        self.params: dict[str, torch.Tensor] = {}
+        self.objects = {}  # id -> top-level plugin dict
+        self.built_bsdfs: dict[int, int] = {}  # id(node) -> native BSDF index
+        self.built_textures: dict[int, tuple] = {}
+        for key, value in scene.items():
+            if _is_plugin(value) and value["type"] != "ref":
+                self.objects[value.get("__id__", key)] = value
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def fail(self, node, message: str):
+        raise SceneError(f"{_where(node)}: {message}")
+
+    def deref(self, value, category: str, where_node):
+        if isinstance(value, dict) and value.get("type") == "ref":
+            target = self.objects.get(value["id"])
+            if target is None:
+                self.fail(value, f"reference to unknown id '{value['id']}'")
+            value = target
+        if not _is_plugin(value) or CATEGORY.get(value["type"]) != category:
+            got = value.get("type") if isinstance(value, dict) else type(value).__name__
+            self.fail(where_node, f"expected a {category} plugin, got '{got}'")
+        return value
+
+    def check(self, node, category: str, nested: tuple = ()):
+        """Validate a plugin's type and property names."""
+        t = node["type"]
+        if CATEGORY.get(t) != category:
+            supported = sorted(k for k, v in CATEGORY.items() if v == category)
+            self.fail(node, f"unsupported {category} plugin '{t}' (supported: {', '.join(supported)})")
+        tag = node.get("__tag__")
+        if tag is not None and tag != category:
+            self.fail(node, f"<{tag} type=\"{t}\">: '{t}' is a {category}, not a {tag}")
+        allowed = PROPERTIES[t]
+        for key, value in node.items():
+            if key.startswith("__") or key in ("type", "id"):
+                continue
+            if _is_plugin(value):
+                cat = CATEGORY.get(value["type"]) if value["type"] != "ref" else None
+                target = self.objects.get(value.get("id")) if value["type"] == "ref" else value
+                cat = CATEGORY.get(target["type"]) if target is not None else None
+                if key in allowed or cat in nested:
+                    continue
+                self.fail(value if value.get("__where__") else node,
+                          f"{t}: unexpected nested plugin '{key}' ({value['type']})")
+            elif key not in allowed:
+                self.fail(node, f"{t}: unsupported parameter '{key}' (supported: "
+                                f"{', '.join(sorted(allowed)) or 'none'})")
+
+    def nested(self, node, category: str) -> list:
+        out = []
+        for key, value in node.items():
+            if key.startswith("__") or not _is_plugin(value):
+                continue
+            if value["type"] == "ref":
+                target = self.objects.get(value["id"])
+                if target is None:
+                    self.fail(value, f"reference to unknown id '{value['id']}'")
+                if CATEGORY.get(target["type"]) == category:
+                    out.append((key, target, True))
+            elif CATEGORY.get(value["type"]) == category:
+                out.append((key, value, False))
+        return out
+
+    def add_param(self, key: str, value) -> int:
+        t = torch.as_tensor(np.asarray(value, dtype=np.float64)).to(self.dtype).contiguous()
+        if key in self.params:
+            raise SceneError(f"two parameters share the key '{key}': give the objects distinct ids")
+        self.params[key] = t
+        return self.native.add_param(key, t.numel())
+
+    def number(self, node, name: str, default=None, kind=float):
+        value = node.get(name, default)
+        if value is None:
+            self.fail(node, f"{node['type']}: missing parameter '{name}'")
+        try:
+            if kind is bool:
+                if isinstance(value, str):
+                    if value.lower() not in ("true", "false"):
+                        raise ValueError
+                    return value.lower() == "true"
+                return bool(value)
+            if kind is int and isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return kind(value)
+        except (TypeError, ValueError):
+            self.fail(node, f"{node['type']}: parameter '{name}' must be a {kind.__name__}, got {value!r}")
+
+    def string(self, node, name: str, default: str, choices=None) -> str:
+        value = node.get(name, default)
+        if not isinstance(value, str):
+            self.fail(node, f"{node['type']}: parameter '{name}' must be a string, got {value!r}")
+        if choices is not None and value not in choices:
+            self.fail(node, f"{node['type']}: parameter '{name}' must be one of {', '.join(choices)}, got '{value}'")
+        return value
+
+    def matrix(self, node, name: str = "to_world") -> np.ndarray:
+        value = node.get(name)
+        if value is None:
+            return np.eye(4)
+        try:
+            return as_matrix(value, name)
+        except ValueError as e:
+            self.fail(node, f"{node['type']}: {e}")
+
+    def vector(self, node, name: str, default=None) -> np.ndarray:
+        value = node.get(name, default)
+        v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+        if v.shape != (3,):
+            self.fail(node, f"{node['type']}: parameter '{name}' needs 3 values, got {v.size}")
+        return v
+
+    def ior(self, node, name: str, default: str) -> float:
+        value = node.get(name, default)
+        if isinstance(value, str):
+            if value.lower() not in IOR:
+                self.fail(node, f"{node['type']}: unknown {name} '{value}' (known: {', '.join(IOR)})")
+            return IOR[value.lower()]
+        return self.number(node, name)
+
+    def resolve(self, node, filename) -> Path:
+        p = Path(os.path.expanduser(str(filename)))
+        candidates = [p] if p.is_absolute() else [base / p for base in self.search]
+        for c in candidates:
+            if c.exists():
+                return c
+        self.fail(node, f"{node['type']}: file '{filename}' not found (looked in "
+                        f"{', '.join(str(c.parent) for c in candidates)})")
+
+    # -- textures ------------------------------------------------------------------------------
+
+    def texture(self, owner, name: str, key: str, default):
+        """A material input: returns (param, bitmap) for the C++ side."""
+        value = owner.get(name, default)
+        if isinstance(value, dict) and value.get("type") == "ref":
+            value = self.deref(value, "texture", owner)
+            key = value.get("__id__", key)
+        if isinstance(value, dict) and value.get("type") == "rgb":
+            v = np.asarray(value["value"], dtype=np.float64).reshape(-1)
+            if v.size == 1:
+                v = np.repeat(v, 3)
+            if v.size != 3:
+                self.fail(value, f"rgb '{name}' needs 1 or 3 values")
+            return self.add_param(f"{key}.value", v), -1
+        if isinstance(value, dict) and value.get("type") == "bitmap":
+            return -1, self.bitmap(value, key)
+        if isinstance(value, dict):
+            self.fail(value, f"'{name}': unsupported texture '{value.get('type')}' (supported: rgb, "
+                             f"bitmap, or a number)")
+        if isinstance(value, (torch.Tensor, np.ndarray, list, tuple)):
+            v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+            if v.size not in (1, 3):
+                self.fail(owner, f"{owner['type']}: '{name}' needs 1 or 3 values, got {v.size}")
+            return self.add_param(f"{key}.value", v), -1
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb or bitmap, got {value!r}")
+        return self.add_param(f"{key}.value", [v]), -1
+
+    def bitmap(self, node, key: str) -> int:
+        if id(node) in self.built_textures:
+            return self.built_textures[id(node)]
+        self.check(node, "texture")
+        path = self.resolve(node, self.string(node, "filename", None) if "filename" in node else
+                            self.fail(node, "bitmap: missing parameter 'filename'"))
+        raw = self.number(node, "raw", False, bool)
+        try:
+            image = read_image(path, raw=raw)
+        except Exception as e:  # noqa: BLE001 - re-raised with the scene location
+            self.fail(node, f"bitmap: {e}")
+        if image.shape[2] == 4:
+            image = image[:, :, :3]
+        elif image.shape[2] == 2:
+            image = image[:, :, :1]
+        h, w, c = image.shape
+        param = self.add_param(f"{key}.data", image.numpy())
+        self.params[f"{key}.data"] = self.params[f"{key}.data"].reshape(h, w, c)
+        filt = self.string(node, "filter_type", "bilinear", ("bilinear", "nearest"))
+        wrap = self.string(node, "wrap_mode", "repeat", ("repeat", "mirror", "clamp"))
+        index = self.native.add_bitmap(param, w, h, c, wrap, filt == "nearest")
+        self.built_textures[id(node)] = index
+        return index
+
+    # -- BSDFs ---------------------------------------------------------------------------------
+
+    def bsdf(self, node, key: str, twosided: bool = False) -> int:
+        if id(node) in self.built_bsdfs:
+            return self.built_bsdfs[id(node)]
+        key = node.get("__id__", key)
+        t = node["type"]
+        self.check(node, "bsdf", nested=("bsdf", "texture") if t == "twosided" else ("texture",))
+        if t == "twosided":
+            inner = self.nested(node, "bsdf")
+            if len(inner) != 1:
+                self.fail(node, f"twosided needs exactly one nested BSDF, got {len(inner)} "
+                                f"(different front and back BSDFs are not supported)")
+            _, child, _ = inner[0]
+            if child["type"] == "twosided":
+                self.fail(child, "twosided cannot nest another twosided")
+            index = self.bsdf(child, f"{key}.brdf_0", twosided=True)
+            self.built_bsdfs[id(node)] = index
+            return index
+        material = node.get("material", "none")
+        if t in ("conductor", "roughconductor") and material != "none":
+            self.fail(node, f"{t}: material '{material}' is not supported (only 'none', an ideal "
+                            f"mirror tinted by specular_reflectance)")
+        if node.get("sample_visible", True) not in (True, "true"):
+            self.fail(node, f"{t}: only sample_visible=true is supported")
+        refl = spec = trans = None
+        alpha, dist, eta, nonlinear = -1, "beckmann", 1.0, False
+        if t == "diffuse":
+            refl = self.texture(node, "reflectance", f"{key}.reflectance", 0.5)
+        elif t == "conductor":
+            spec = self.texture(node, "specular_reflectance", f"{key}.specular_reflectance", 1.0)
+        elif t == "roughconductor":
+            spec = self.texture(node, "specular_reflectance", f"{key}.specular_reflectance", 1.0)
+            alpha = self.add_param(f"{key}.alpha.value", [self.number(node, "alpha", 0.1)])
+            dist = self.string(node, "distribution", "beckmann", ("beckmann", "ggx"))
+        elif t == "dielectric":
+            spec = self.texture(node, "specular_reflectance", f"{key}.specular_reflectance", 1.0)
+            trans = self.texture(node, "specular_transmittance", f"{key}.specular_transmittance", 1.0)
+            eta = self.ior(node, "int_ior", "bk7") / self.ior(node, "ext_ior", "air")
+        elif t == "roughplastic":
+            refl = self.texture(node, "diffuse_reflectance", f"{key}.diffuse_reflectance", 0.5)
+            spec = self.texture(node, "specular_reflectance", f"{key}.specular_reflectance", 1.0)
+            alpha = self.add_param(f"{key}.alpha.value", [self.number(node, "alpha", 0.1)])
+            dist = self.string(node, "distribution", "beckmann", ("beckmann", "ggx"))
+            eta = self.ior(node, "int_ior", "polypropylene") / self.ior(node, "ext_ior", "air")
+            nonlinear = self.number(node, "nonlinear", False, bool)
+        if alpha >= 0 and not float(self.params[f"{key}.alpha.value"][0]) > 0:
+            self.fail(node, f"{t}: alpha must be positive")
+        index = self.native.add_bsdf(t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
+        self.built_bsdfs[id(node)] = index
+        return index
+
+    # -- shapes and emitters -------------------------------------------------------------------
+
+    def shape(self, node, key: str) -> None:
+        self.check(node, "shape", nested=("bsdf", "emitter"))
+        t = node["type"]
+        bsdfs = self.nested(node, "bsdf")
+        if len(bsdfs) > 1:
+            self.fail(node, f"{t}: a shape takes one BSDF, got {len(bsdfs)}")
+        if bsdfs:
+            name, child, referenced = bsdfs[0]
+            bsdf = self.bsdf(child, child.get("__id__", f"{key}.bsdf"))
+        else:  # Mitsuba's default: a diffuse BSDF of reflectance 0.5
+            bsdf = self.bsdf({"type": "diffuse", "__where__": _where(node)}, f"{key}.bsdf")
+        flip = self.number(node, "flip_normals", False, bool)
+        to_world = self.matrix(node)
+        if t == "sphere":
+            center = self.vector(node, "center", [0, 0, 0])
+            radius = self.number(node, "radius", 1.0)
+            m = to_world @ Transform.translate(center).matrix @ Transform.scale(radius).matrix
+            axes = m[:3, :3]
+            scales = np.linalg.norm(axes, axis=0)
+            if not np.allclose(scales, scales[0], rtol=1e-4) or scales[0] <= 0:
+                self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
+            frame = (axes / scales).T.tolist()
+            shape = self.native.add_sphere(m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
+        else:
+            if t in ("obj", "ply"):
+                if "filename" not in node:
+                    self.fail(node, f"{t}: missing parameter 'filename'")
+                path = self.resolve(node, node["filename"])
+                face_normals = self.number(node, "face_normals", False, bool)
+                flip_tex = self.number(node, "flip_tex_coords", t == "obj", bool)
+                try:
+                    mesh = (meshes.load_obj if t == "obj" else meshes.load_ply)(
+                        path, face_normals=face_normals, flip_tex_coords=flip_tex)
+                except meshes.MeshError as e:
+                    self.fail(node, f"{t}: {e}")
+            else:
+                mesh = meshes.rectangle() if t == "rectangle" else meshes.cube()
+            mesh = mesh.transformed(to_world)
+            shape = self.native.add_mesh(
+                torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
+                None if mesh.normals is None else torch.from_numpy(mesh.normals),
+                None if mesh.uvs is None else torch.from_numpy(mesh.uvs), bsdf, flip)
+        emitters = self.nested(node, "emitter")
+        if len(emitters) > 1:
+            self.fail(node, f"{t}: a shape takes one emitter, got {len(emitters)}")
+        for _, em, _ in emitters:
+            self.check(em, "emitter")
+            if em["type"] != "area":
+                self.fail(em, f"only 'area' emitters can be attached to a shape, got '{em['type']}'")
+            ekey = em.get("__id__", f"{key}.emitter")
+            param, bitmap = self.texture(em, "radiance", f"{ekey}.radiance", None if "radiance" in em else 1.0)
+            if bitmap >= 0:
+                self.fail(em, "area: textured radiance is not supported")
+            self.native.add_emitter("area", param, shape, [])
+
+    def emitter(self, node, key: str) -> None:
+        self.check(node, "emitter")
+        t = node["type"]
+        if t == "area":
+            self.fail(node, "an area emitter must be nested in a shape")
+        if t == "point":
+            position = self.vector(node, "position", [0, 0, 0])
+            if "to_world" in node:
+                position = self.matrix(node) @ np.append(position, 1.0)
+            param, _ = self.texture(node, "intensity", f"{key}.intensity", 1.0)
+            self.native.add_emitter("point", param, -1, [float(x) for x in position[:3]])
+        else:
+            param, bitmap = self.texture(node, "radiance", f"{key}.radiance", 1.0)
+            if bitmap >= 0:
+                self.fail(node, "constant: textured radiance is not supported (use rgb or a number)")
+            self.native.add_emitter("constant", param, -1, [])
+
+    # -- sensor and integrator ---------------------------------------------------------------
+
+    def sensor(self, node) -> Sensor:
+        self.check(node, "sensor", nested=("film", "sampler"))
+        s = Sensor()
+        s.to_world = self.matrix(node)
+        for name in ("principal_point_offset_x", "principal_point_offset_y"):
+            if self.number(node, name, 0.0) != 0.0:
+                self.fail(node, f"perspective: '{name}' must be 0 (off-centre projections are not supported)")
+        if "fov" in node and "focal_length" in node:
+            self.fail(node, "perspective: give either 'fov' or 'focal_length', not both")
+        if "fov" in node:
+            s.fov = self.number(node, "fov")
+            s.fov_axis = self.string(node, "fov_axis", "x", ("x", "y", "diagonal", "smaller", "larger"))
+        else:
+            f = node.get("focal_length", "50mm")
+            text = str(f)[:-2] if str(f).endswith("mm") else str(f)
+            try:
+                focal = float(text)
+            except ValueError:
+                self.fail(node, f"perspective: cannot parse focal_length '{f}'")
+            # Mitsuba: a 35 mm film (36 x 24 mm) diagonal field of view.
+            s.fov = float(np.degrees(2 * np.arctan(np.hypot(36.0, 24.0) / (2 * focal))))
+            s.fov_axis = "diagonal"
+        s.near_clip = self.number(node, "near_clip", 1e-2)
+        s.far_clip = self.number(node, "far_clip", 1e4)
+        films = self.nested(node, "film")
+        s.film = self.film(films[0][1]) if films else Film()
+        samplers = self.nested(node, "sampler")
+        if samplers:
+            sampler = samplers[0][1]
+            self.check(sampler, "sampler")
+            s.spp = self.number(sampler, "sample_count", 4, int)
+            s.seed = self.number(sampler, "seed", 0, int)
+            if s.spp <= 0:
+                self.fail(sampler, "independent: sample_count must be positive")
+        return s
+
+    def film(self, node) -> Film:
+        self.check(node, "film", nested=("rfilter",))
+        f = Film(width=self.number(node, "width", 768, int), height=self.number(node, "height", 576, int))
+        if f.width <= 0 or f.height <= 0:
+            self.fail(node, f"hdrfilm: width and height must be positive, got {f.width}x{f.height}")
+        if any(k in node for k in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")):
+            x, y = self.number(node, "crop_offset_x", 0, int), self.number(node, "crop_offset_y", 0, int)
+            w = self.number(node, "crop_width", f.width - x, int)
+            h = self.number(node, "crop_height", f.height - y, int)
+            if x < 0 or y < 0 or w <= 0 or h <= 0 or x + w > f.width or y + h > f.height:
+                self.fail(node, f"hdrfilm: crop window ({x}, {y}, {w}, {h}) lies outside the {f.width}x{f.height} film")
+            f.crop = (x, y, w, h)
+        filters = self.nested(node, "rfilter")
+        if filters:
+            rf = filters[0][1]
+            self.check(rf, "rfilter")
+            f.filter = rf["type"]
+            if f.filter == "box":
+                f.filter_radius = 0.5
+            elif f.filter == "tent":
+                f.filter_radius = self.number(rf, "radius", 1.0)
+            else:
+                f.filter_stddev = self.number(rf, "stddev", 0.5)
+                f.filter_radius = 4 * f.filter_stddev
+            if not f.filter_radius > 0:
+                self.fail(rf, f"{f.filter}: the filter radius must be positive")
+        return f
+
+    def integrator(self, node) -> Integrator:
+        self.check(node, "integrator")
+        if self.number(node, "hide_emitters", False, bool):
+            self.fail(node, f"{node['type']}: hide_emitters=true is not supported")
+        i = Integrator(type=node["type"])
+        if i.type == "direct":
+            shading = self.number(node, "shading_samples", 1, int)
+            i.emitter_samples = self.number(node, "emitter_samples", shading, int)
+            i.bsdf_samples = self.number(node, "bsdf_samples", shading, int)
+            if i.emitter_samples < 0 or i.bsdf_samples < 0 or i.emitter_samples + i.bsdf_samples == 0:
+                self.fail(node, "direct: emitter_samples and bsdf_samples must be >= 0 and not both 0")
+        else:
+            i.max_depth = self.number(node, "max_depth", -1, int)
+            i.rr_depth = self.number(node, "rr_depth", 5, int)
+            if i.max_depth < -1 or i.rr_depth <= 0:
+                self.fail(node, f"{i.type}: max_depth must be >= -1 and rr_depth > 0")
+        return i
+
+    # -- scene ---------------------------------------------------------------------------------
+
+    def build(self, scene: dict, source: str) -> Scene:
+        if scene.get("type") != "scene":
+            raise SceneError(f"{_where(scene)}: the root must have type 'scene', got {scene.get('type')!r}")
+        sensor, integrator = None, Integrator()
+        for key, value in scene.items():
+            if key.startswith("__") or key == "type":
+                continue
+            if not _is_plugin(value):
+                raise SceneError(f"{_where(scene)}: scene entry '{key}' must be a plugin dict, got {type(value).__name__}")
+            t = value["type"]
+            cat = CATEGORY.get(t)
+            if t == "ref":
+                continue
+            if cat is None:
+                raise SceneError(f"{_where(value)}: unsupported plugin '{t}' (supported: {', '.join(sorted(CATEGORY))})")
+            key = value.get("__id__", key)
+            if cat == "shape":
+                self.shape(value, key)
+            elif cat == "emitter":
+                self.emitter(value, key)
+            elif cat == "sensor":
+                if sensor is not None:
+                    raise SceneError(f"{_where(value)}: only one sensor is supported")
+                sensor = self.sensor(value)
+            elif cat == "integrator":
+                integrator = self.integrator(value)
+            elif cat == "bsdf":
+                self.bsdf(value, key)  # registers its parameters even if unused
+            elif cat == "texture":
+                self.bitmap(value, key)
+            else:
+                raise SceneError(f"{_where(value)}: a {cat} must be nested in a sensor or film")
+        if sensor is None:
+            sensor = Sensor()
+        self.native.build()
+        return Scene(self.native, self.params, sensor, integrator, source)
+
+
+def load_dict(scene: dict, dtype: torch.dtype = torch.float32, base_dir=None) -> Scene:
+    """Load a scene from Mitsuba 3's dict format.
+
+    `to_world` values may be 4x4 matrices (nested lists, numpy arrays, tensors) or
+    `torch_rbpt.Transform`s. Relative file names resolve against `base_dir` (default: the
+    current directory). Parameters are created with `dtype` (float32 or float64).
+    """
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    if not isinstance(scene, dict):
+        raise TypeError(f"load_dict expects a dict, got {type(scene).__name__}")
+    base = Path(base_dir) if base_dir is not None else Path.cwd()
+    return _Builder(scene, base, dtype).build(scene, "<dict>")
+
+
+def load_file(path, dtype: torch.dtype = torch.float32, **defaults) -> Scene:
+    """Load a Mitsuba 3 XML scene; keyword arguments override its <default> values
+    (e.g. `load_file("cbox.xml", res=64, spp=16)`)."""
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    path = Path(path)
+    tree = read_xml(path, defaults)
+    return _Builder(tree, path.resolve().parent, dtype).build(tree, str(path))

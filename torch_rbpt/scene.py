@@ -1,0 +1,165 @@
+"""The loaded scene: its parameters (live torch tensors keyed by Mitsuba's traverse keys),
+its sensor and film, its integrator settings, and the C++ scene they feed."""
+from __future__ import annotations
+
+from collections.abc import MutableMapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from . import _C
+
+
+class SceneParams(MutableMapping):
+    """Dict-like view of the differentiable parameters of a scene.
+
+    Keys are Mitsuba's `mi.traverse` keys (`red.reflectance.value`, `tex.reflectance.data`);
+    values are the tensors the renderer reads: RGB values have shape (3,), scalars (1,),
+    bitmaps (H, W, C). Editing a tensor in place changes the next render. Assigning a new
+    tensor checks its shape, dtype and device; keys cannot be added or removed.
+    """
+
+    def __init__(self, tensors: dict[str, torch.Tensor]):
+        self._tensors = tensors
+
+    def __getitem__(self, key: str) -> torch.Tensor:
+        try:
+            return self._tensors[key]
+        except KeyError:
+            raise KeyError(f"no scene parameter '{key}' (available: {', '.join(self._tensors)})") from None
+
+    def __setitem__(self, key: str, value) -> None:
+        old = self[key]
+        if not isinstance(value, torch.Tensor):
+            raise TypeError(f"scene parameter '{key}' must be a torch.Tensor, got {type(value).__name__}")
+        if value.shape != old.shape:
+            raise ValueError(f"scene parameter '{key}' must have shape {tuple(old.shape)}, got {tuple(value.shape)}")
+        if value.dtype != old.dtype:
+            raise ValueError(f"scene parameter '{key}' must have dtype {old.dtype}, got {value.dtype}")
+        if value.device.type != "cpu":
+            raise ValueError(f"scene parameter '{key}' must be on the CPU, got device {value.device}")
+        self._tensors[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        raise TypeError("scene parameters cannot be removed")
+
+    def __iter__(self):
+        return iter(self._tensors)
+
+    def __len__(self) -> int:
+        return len(self._tensors)
+
+    def __repr__(self) -> str:
+        rows = [f"  {k}: {tuple(v.shape)} {str(v.dtype).replace('torch.', '')}" for k, v in self._tensors.items()]
+        return "SceneParams(\n" + "\n".join(rows) + "\n)"
+
+
+@dataclass
+class Film:
+    """`hdrfilm`: size in pixels, crop window and reconstruction filter."""
+    width: int = 768
+    height: int = 576
+    crop: tuple[int, int, int, int] | None = None  # (x, y, width, height); None: full film
+    filter: str = "gaussian"
+    filter_radius: float = 2.0
+    filter_stddev: float = 0.5
+
+    def crop_window(self) -> tuple[int, int, int, int]:
+        return self.crop if self.crop is not None else (0, 0, self.width, self.height)
+
+
+@dataclass
+class Sensor:
+    """`perspective` sensor. `fov` is along `fov_axis`, resolved against the film's aspect
+    ratio at render time (so changing the film size keeps Mitsuba's meaning)."""
+    to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    fov: float = 39.597755  # 50 mm lens
+    fov_axis: str = "x"
+    near_clip: float = 1e-2
+    far_clip: float = 1e4
+    film: Film = field(default_factory=Film)
+    spp: int = 4
+    seed: int = 0
+
+    def x_fov(self) -> float:
+        """Horizontal field of view in degrees, as Mitsuba's parse_fov computes it."""
+        aspect = self.film.width / self.film.height
+        axis = self.fov_axis
+        if axis == "smaller":
+            axis = "y" if aspect > 1 else "x"
+        elif axis == "larger":
+            axis = "x" if aspect > 1 else "y"
+        half = np.tan(np.radians(self.fov) / 2)
+        if axis == "x":
+            return self.fov
+        if axis == "y":
+            return float(np.degrees(2 * np.arctan(half * aspect)))
+        # diagonal
+        width = 2 * half / np.sqrt(1 + 1 / aspect ** 2)
+        return float(np.degrees(2 * np.arctan(width / 2)))
+
+    def native(self) -> dict:
+        f = self.film
+        return {"to_world": self.to_world.tolist(), "fov_x": self.x_fov(), "width": f.width,
+                "height": f.height, "near_clip": self.near_clip, "far_clip": self.far_clip,
+                "crop": list(f.crop_window()), "filter": f.filter,
+                "filter_radius": f.filter_radius, "filter_stddev": f.filter_stddev}
+
+
+@dataclass
+class Integrator:
+    """`path`/`prb` or `direct`, with Mitsuba's parameters and defaults."""
+    type: str = "path"
+    max_depth: int = -1
+    rr_depth: int = 5
+    emitter_samples: int = 1
+    bsdf_samples: int = 1
+
+    def native(self) -> dict:
+        return {"type": "direct" if self.type == "direct" else "path", "max_depth": self.max_depth,
+                "rr_depth": self.rr_depth, "emitter_samples": self.emitter_samples,
+                "bsdf_samples": self.bsdf_samples}
+
+
+class Scene:
+    """A loaded scene. Create with `torch_rbpt.load_file` or `torch_rbpt.load_dict`."""
+
+    def __init__(self, native: "_C.Scene", params: dict[str, torch.Tensor], sensor: Sensor,
+                 integrator: Integrator, source: str = "<dict>"):
+        self._native = native
+        self.params = SceneParams(params)
+        self._keys = list(params)  # order of the C++ parameter registry
+        self.sensor = sensor
+        self.integrator = integrator
+        self.source = source
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """dtype of the parameters, and so of rendered images."""
+        return next(iter(self.params.values())).dtype if len(self.params) else torch.float32
+
+    def to(self, dtype: torch.dtype) -> "Scene":
+        """Convert all parameters to float32 or float64 (in place); returns the scene."""
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"scene dtype must be torch.float32 or torch.float64, got {dtype}")
+        for k in self._keys:
+            self.params._tensors[k] = self.params._tensors[k].detach().to(dtype)
+        return self
+
+    def param_list(self) -> list[torch.Tensor]:
+        """Parameter tensors in registry order (detached, contiguous) for the C++ core."""
+        out = []
+        dtype = self.dtype
+        for k in self._keys:
+            t = self.params[k]
+            if t.dtype != dtype:
+                raise ValueError(f"scene parameter '{k}' has dtype {t.dtype} but the scene is "
+                                 f"{dtype}: all parameters must share one dtype")
+            out.append(t.detach().contiguous())
+        return out
+
+    def __repr__(self) -> str:
+        f = self.sensor.film
+        return (f"Scene('{self.source}', {f.width}x{f.height}, {self._native.triangle_count} triangles, "
+                f"{len(self.params)} parameters, integrator={self.integrator.type})")
