@@ -59,6 +59,14 @@ static float solid_angle_pdf(float pdf_area, const Vec3 &ref, const Vec3 &p, con
     return cos > 0.f ? pdf_area * dist2 / cos : 0.f;
 }
 
+/// Squared radius beyond which a reference point counts as outside a sphere. Points on the
+/// sphere itself (its own shading points) count as inside when its normals face inwards,
+/// as in Mitsuba (which scales the radius by 1 +- epsilon).
+static float outside_radius2(const Shape &shape) {
+    float r = shape.radius * (shape.flip_normals ? 1.f + 1e-4f : 1.f - 1e-4f);
+    return r * r;
+}
+
 DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec2 u) const {
     const Shape &shape = shapes[shape_index];
     DirectionSample ds;
@@ -82,7 +90,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
     } else {
         Vec3 dc = shape.center - ref;
         float dc2 = squared_norm(dc);
-        if (dc2 > shape.radius * shape.radius) {
+        if (dc2 > outside_radius2(shape)) {
             // Outside: sample the cone of directions subtended by the sphere (as Mitsuba).
             float inv_dc = 1.f / std::sqrt(dc2);
             float sin_max = shape.radius * inv_dc, sin_max2 = sin_max * sin_max;
@@ -125,7 +133,7 @@ float Geometry::pdf_direction(int shape_index, const Vec3 &ref, const Vec3 &p,
     const Shape &shape = shapes[shape_index];
     if (shape.kind == ShapeKind::Sphere) {
         float dc2 = squared_norm(shape.center - ref);
-        if (dc2 > shape.radius * shape.radius) {
+        if (dc2 > outside_radius2(shape)) {
             float sin_max2 = shape.radius * shape.radius / dc2;
             return sin_max2 > 0.00068523f
                        ? warp::square_to_uniform_cone_pdf(safe_sqrt(1.f - sin_max2))

@@ -120,9 +120,10 @@ class _Builder:
             if key.startswith("__") or key in ("type", "id"):
                 continue
             if _is_plugin(value):
-                cat = CATEGORY.get(value["type"]) if value["type"] != "ref" else None
                 target = self.objects.get(value.get("id")) if value["type"] == "ref" else value
-                cat = CATEGORY.get(target["type"]) if target is not None else None
+                if target is None:
+                    self.fail(value, f"reference to unknown id '{value.get('id')}'")
+                cat = CATEGORY.get(target["type"])
                 if key in allowed or cat in nested:
                     continue
                 self.fail(value if value.get("__where__") else node,

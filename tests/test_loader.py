@@ -1,0 +1,204 @@
+"""Scene loading (torch_rbpt/loader.py, mitsuba_xml.py): the shared Mitsuba 3 scenes, the
+dict format, parameter keys, and errors that name the culprit."""
+import re
+
+import numpy as np
+import pytest
+import torch
+
+import torch_rbpt as tr
+from conftest import ROOT
+
+SHARED_SCENES = [
+    ("cbox/cbox.xml", {"res": 16}),
+    ("cornell-box/scene_v3.xml", {"resx": 16, "resy": 16}),
+    ("veach-mis/integrator_direct_both.xml", {}),
+    ("veach-mis/integrator_direct_bsdf.xml", {}),
+    ("veach-mis/integrator_direct_lum.xml", {}),
+]
+
+
+@pytest.mark.parametrize("path,defaults", SHARED_SCENES)
+def test01_shared_scenes_load_and_render_finite(shared, path, defaults):
+    scene = tr.load_file(shared / path, **defaults)
+    if "veach" in path:
+        assert (scene.sensor.film.width, scene.sensor.film.height) == (768, 512)
+        scene.sensor.film.width, scene.sensor.film.height = 24, 16
+    image = tr.render(scene, spp=4)
+    assert image.dtype == torch.float32
+    assert image.shape == (scene.sensor.film.height, scene.sensor.film.width, 3)
+    assert torch.isfinite(image).all()
+    assert image.mean() > 0.01
+
+
+def test02_cbox_parameters_and_settings(shared):
+    scene = tr.load_file(shared / "cbox/cbox.xml", res=32, spp=7, max_depth=3)
+    p = scene.params
+    torch.testing.assert_close(p["red.reflectance.value"], torch.tensor([0.570068, 0.0430135, 0.0443706]))
+    torch.testing.assert_close(p["light.emitter.radiance.value"], torch.tensor([18.387, 13.9873, 6.75357]))
+    assert p["mirror.specular_reflectance.value"].shape == (1,)
+    assert scene.sensor.spp == 7 and scene.integrator.max_depth == 3
+    assert scene.sensor.film.filter == "tent" and scene.sensor.fov_axis == "smaller"
+    assert (scene.sensor.film.width, scene.sensor.film.height) == (32, 32)
+
+
+def test03_keys_of_nested_and_unnamed_objects(shared):
+    scene = tr.load_file(shared / "cornell-box/scene_v3.xml", resx=8, resy=8)
+    assert "LeftWallBSDF.brdf_0.reflectance.value" in scene.params
+    assert "Light.emitter.radiance.value" in scene.params
+    veach = tr.load_file(shared / "veach-mis/integrator_direct_both.xml")
+    assert "sphere_4.emitter.radiance.value" in veach.params
+    assert "obj_0.bsdf.alpha.value" in veach.params
+    torch.testing.assert_close(veach.params["obj_3.bsdf.alpha.value"], torch.tensor([0.1]))
+
+
+def test04_params_are_live_and_checked(shared):
+    scene = tr.load_file(shared / "cbox/cbox.xml", res=8)
+    before = tr.render(scene, spp=4)
+    scene.params["light.emitter.radiance.value"].mul_(2.0)
+    after = tr.render(scene, spp=4)
+    torch.testing.assert_close(after, 2 * before, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match=r"red\.reflectance\.value.*shape \(3,\)"):
+        scene.params["red.reflectance.value"] = torch.zeros(4)
+    with pytest.raises(ValueError, match=r"red\.reflectance\.value.*dtype"):
+        scene.params["red.reflectance.value"] = torch.zeros(3, dtype=torch.float64)
+    with pytest.raises(KeyError, match="no scene parameter 'nope'"):
+        scene.params["nope"]
+    scene.params["red.reflectance.value"] = torch.tensor([0.1, 0.2, 0.3])
+    assert scene.params["red.reflectance.value"][1] == pytest.approx(0.2)
+
+
+def test05_float64_scenes_render_float64(shared):
+    scene = tr.load_file(shared / "cbox/cbox.xml", res=8, dtype=torch.float64)
+    image = tr.render(scene, spp=2)
+    assert image.dtype == torch.float64
+    image32 = tr.render(tr.load_file(shared / "cbox/cbox.xml", res=8), spp=2)
+    torch.testing.assert_close(image.float(), image32, rtol=1e-3, atol=1e-4)
+
+
+def _dict_box(**overrides):
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 4},
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 12, "height": 8}},
+        "red": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.1, 0.1]}},
+        "wall": {"type": "rectangle", "bsdf": {"type": "ref", "id": "red"},
+                 "to_world": tr.Transform.scale([2, 2, 1])},
+        "light": {"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": [5, 5, 5]}},
+    }
+    scene.update(overrides)
+    return scene
+
+
+def test06_dict_format_with_transforms_and_matrices():
+    scene = tr.load_dict(_dict_box())
+    assert set(scene.params) == {"red.reflectance.value", "light.intensity.value"}
+    image = tr.render(scene, spp=4)
+    assert image.shape == (8, 12, 3) and float(image[..., 0].mean()) > 0
+    # The same scene with a plain 4x4 matrix for to_world.
+    m = tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]).matrix.tolist()
+    d = _dict_box()
+    d["sensor"]["to_world"] = m
+    torch.testing.assert_close(tr.render(tr.load_dict(d), spp=4), image)
+
+
+def test07_point_light_on_plane_matches_analytic_value():
+    # Irradiance from a point light I at height h onto a diffuse plane: E = I / h^2 at the
+    # foot; radiance = rho / pi * E.
+    scene = tr.load_dict(_dict_box(sensor={
+        "type": "perspective", "fov": 1.0,
+        "to_world": tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}}}))
+    image = tr.render(scene, spp=16)
+    expected = torch.tensor([0.8, 0.1, 0.1]) / np.pi * 5 / 4
+    torch.testing.assert_close(image[0, 0], expected, rtol=2e-3, atol=0)
+
+
+def test08_transform_conventions():
+    t = tr.Transform.translate([1, 2, 3]) @ tr.Transform.rotate([0, 0, 1], 90) @ tr.Transform.scale(2)
+    np.testing.assert_allclose(t.apply_point([1, 0, 0]), [1, 4, 3], atol=1e-12)
+    cam = tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0])
+    np.testing.assert_allclose(cam.matrix[:3, 2], [0, 0, -1])  # looks along -z
+    np.testing.assert_allclose(cam.matrix[:3, 0], [-1, 0, 0])  # local x points left
+
+
+# -- errors --------------------------------------------------------------------------------
+
+def _write(tmp_path, body, name="scene.xml"):
+    path = tmp_path / name
+    path.write_text(f'<scene version="3.0.0">\n{body}\n</scene>\n')
+    return path
+
+
+def test09_unknown_plugin_names_file_line_and_supported(tmp_path):
+    path = _write(tmp_path, '    <bsdf type="diffuse" id="a"/>\n    <bsdf type="velvet" id="b"/>')
+    with pytest.raises(tr.SceneError, match=re.escape(f"{path}:3") + ".*velvet.*supported: .*diffuse"):
+        tr.load_file(path)
+
+
+def test10_unknown_parameter_is_named(tmp_path):
+    path = _write(tmp_path, '<bsdf type="diffuse">\n  <float name="roughness" value="1"/>\n</bsdf>')
+    with pytest.raises(tr.SceneError, match=r"scene\.xml:2: diffuse: unsupported parameter 'roughness'"):
+        tr.load_file(path)
+
+
+def test11_missing_mesh_file(tmp_path):
+    path = _write(tmp_path, '<shape type="obj">\n  <string name="filename" value="nothere.obj"/>\n</shape>')
+    with pytest.raises(tr.SceneError, match=r"scene\.xml:2: obj: file 'nothere.obj' not found"):
+        tr.load_file(path)
+
+
+def test12_malformed_xml_reports_its_line(tmp_path):
+    path = tmp_path / "bad.xml"
+    path.write_text('<scene version="3.0.0">\n  <bsdf type="diffuse">\n  </shape>\n</scene>\n')
+    with pytest.raises(tr.SceneError, match=r"bad\.xml:3: malformed XML"):
+        tr.load_file(path)
+
+
+def test13_defaults_and_overrides(tmp_path):
+    path = _write(tmp_path, '<default name="w" value="5"/>\n<sensor type="perspective">'
+                            '<film type="hdrfilm"><integer name="width" value="$w"/>'
+                            '<integer name="height" value="3"/></film></sensor>')
+    assert tr.load_file(path).sensor.film.width == 5
+    assert tr.load_file(path, w=7).sensor.film.width == 7
+    with pytest.raises(tr.SceneError, match="have no <default>"):
+        tr.load_file(path, h=7)
+    bad = _write(tmp_path, '<bsdf type="diffuse"><float name="reflectance" value="$x"/></bsdf>', "b.xml")
+    with pytest.raises(tr.SceneError, match=r"b\.xml:2: undefined parameter \$x"):
+        tr.load_file(bad)
+
+
+def test14_wrong_category_and_missing_reference(tmp_path):
+    path = _write(tmp_path, '<shape type="diffuse"/>')
+    with pytest.raises(tr.SceneError, match="'diffuse' is a bsdf, not a shape|unsupported shape plugin 'diffuse'"):
+        tr.load_file(path)
+    path = _write(tmp_path, '<shape type="sphere"><ref id="nothing"/></shape>', "r.xml")
+    with pytest.raises(tr.SceneError, match="unknown id 'nothing'"):
+        tr.load_file(path)
+
+
+def test15_include_and_path(tmp_path):
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "mat.xml").write_text(
+        '<scene version="3.0.0"><bsdf type="diffuse" id="m"><rgb name="reflectance" value="0.25"/></bsdf></scene>')
+    path = _write(tmp_path, '<path value="parts"/>\n<include filename="mat.xml"/>')
+    scene = tr.load_file(path)
+    torch.testing.assert_close(scene.params["m.reflectance.value"], torch.full((3,), 0.25))
+
+
+def test16_fov_axis_and_focal_length():
+    s = tr.load_dict({"type": "scene", "sensor": {"type": "perspective", "fov": 40, "fov_axis": "y",
+                      "film": {"type": "hdrfilm", "width": 200, "height": 100}}}).sensor
+    assert s.x_fov() == pytest.approx(np.degrees(2 * np.arctan(np.tan(np.radians(20)) * 2)))
+    s.fov_axis = "smaller"  # wider than tall: the smaller axis is y
+    assert s.x_fov() == pytest.approx(np.degrees(2 * np.arctan(np.tan(np.radians(20)) * 2)))
+    s.fov_axis = "larger"
+    assert s.x_fov() == pytest.approx(40)
+
+
+def test17_bundled_scene_loads():
+    scene = tr.load_file(ROOT / "torch_rbpt/scenes/cornell_box.xml", res=16)
+    assert "red.reflectance.value" in scene.params and "light.emitter.radiance.value" in scene.params
+    assert torch.isfinite(tr.render(scene, spp=4)).all()
