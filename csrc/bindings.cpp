@@ -95,6 +95,7 @@ IntegratorSettings make_integrator(const py::dict &d) {
     cfg.rr_depth = get<int>(d, "rr_depth");
     cfg.emitter_samples = get<int>(d, "emitter_samples");
     cfg.bsdf_samples = get<int>(d, "bsdf_samples");
+    cfg.hide_emitters = get<bool>(d, "hide_emitters");
     return cfg;
 }
 
@@ -134,7 +135,9 @@ void run_on_pool(const std::function<void()> &job) {
 
 template <typename T>
 torch::Tensor render_typed(const Scene &scene, const Camera &cam, const IntegratorSettings &cfg,
-                           const std::vector<torch::Tensor> &params, const RenderRequest &req) {
+                           const std::vector<torch::Tensor> &params, RenderRequest req,
+                           uint64_t *rays) {
+    req.rays = rays;
     RenderContext<RGB<T>> ctx(scene, bind_params<T>(scene, params));
     auto dtype = std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64;
     torch::Tensor out = torch::empty({req.row_end - req.row_begin, cam.crop_width, 3},
@@ -147,9 +150,10 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     return out;
 }
 
-torch::Tensor render_fwd(const Scene &scene, const py::dict &camera, const py::dict &integrator,
-                         const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
-                         int row_begin, int row_end) {
+/// Render an image; returns (image (H, W, 3) of the parameters' dtype, rays traced).
+py::tuple render_fwd(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                     const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
+                     int row_begin, int row_end) {
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
     Camera cam = make_camera(camera);
     IntegratorSettings cfg = make_integrator(integrator);
@@ -161,8 +165,10 @@ torch::Tensor render_fwd(const Scene &scene, const py::dict &camera, const py::d
     if (req.row_begin < 0 || req.row_begin >= req.row_end || req.row_end > cam.crop_height)
         fail("rows must satisfy 0 <= begin < end <= crop height");
     bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
-    return dbl ? render_typed<double>(scene, cam, cfg, params, req)
-               : render_typed<float>(scene, cam, cfg, params, req);
+    uint64_t rays = 0;
+    torch::Tensor image = dbl ? render_typed<double>(scene, cam, cfg, params, req, &rays)
+                              : render_typed<float>(scene, cam, cfg, params, req, &rays);
+    return py::make_tuple(image, rays);
 }
 
 // ---- BSDF queries in the local frame, for statistical tests -----------------------------

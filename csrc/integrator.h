@@ -15,6 +15,7 @@ struct IntegratorSettings {
     int max_depth = -1;  ///< Mitsuba's meaning: 1 = emitters seen directly; -1 = unbounded
     int rr_depth = 5;
     int emitter_samples = 1, bsdf_samples = 1;  ///< direct
+    bool hide_emitters = false;  ///< drop emitters seen directly by the camera
 };
 
 /// Power heuristic with Mitsuba's guard against non-finite weights.
@@ -44,7 +45,7 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
 
         // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
         int emitter = scene.emitter_at(si);
-        if (emitter >= 0) {
+        if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
             const Emitter &e = scene.emitters[emitter];
             float em_pdf = prev_delta ? 0.f : emitter_pdf(ctx, e, prev_p, si);
             L += beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(prev_pdf, em_pdf));
@@ -101,7 +102,7 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
     SurfaceInteraction si = scene.intersect(ray);
     S L(0.f);
     int emitter = scene.emitter_at(si);
-    if (emitter >= 0) L += emitter_eval<S>(ctx, scene.emitters[emitter], si);
+    if (emitter >= 0 && !cfg.hide_emitters) L += emitter_eval<S>(ctx, scene.emitters[emitter], si);
     if (!si.valid) return L;
     int bsdf_index = scene.bsdf_at(si);
     const BSDF &bsdf = scene.bsdfs[bsdf_index];

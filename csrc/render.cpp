@@ -14,9 +14,11 @@ void render(const RenderContext<S> &ctx, const Camera &camera, const IntegratorS
     constexpr int64_t TileSize = 16;  // pixels handed out per work item
     int64_t n_tiles = (n_pixels + TileSize - 1) / TileSize;
     std::atomic<int64_t> next_tile{0};
+    std::atomic<uint64_t> total_rays{0};
     T inv_spp = T(1) / T(req.spp);
 
     pool([&] {
+        uint64_t rays_before = rays_traced;
         for (int64_t tile = next_tile++; tile < n_tiles; tile = next_tile++) {
             int64_t end = std::min(n_pixels, (tile + 1) * TileSize);
             for (int64_t i = tile * TileSize; i < end; ++i) {
@@ -38,7 +40,9 @@ void render(const RenderContext<S> &ctx, const Camera &camera, const IntegratorS
                 for (int c = 0; c < 3; ++c) out[3 * i + c] = sum[c] * inv_spp;
             }
         }
+        total_rays += rays_traced - rays_before;
     });
+    if (req.rays) *req.rays = total_rays;
 }
 
 template void render<RGB<float>>(const RenderContext<RGB<float>> &, const Camera &,

@@ -14,6 +14,7 @@ struct RenderRequest {
     int spp = 1;
     uint64_t seed = 0;
     int row_begin = 0, row_end = -1;  ///< rows of the crop window to render (-1: all)
+    uint64_t *rays = nullptr;         ///< if set, receives the number of rays traced
 };
 
 /// Runs the given job once on each worker thread of the caller's pool and waits for all.

@@ -19,6 +19,9 @@ struct ParamInfo {
     int64_t numel = 0;
 };
 
+/// Rays traced by the calling thread (statistics only: thread-local, no locking).
+inline thread_local uint64_t rays_traced = 0;
+
 class Scene {
 public:
     Geometry geometry;
@@ -33,11 +36,15 @@ public:
     void build();
 
     SurfaceInteraction intersect(const Ray &ray) const {
+        ++rays_traced;
         Hit hit;
         bvh.intersect(ray, &hit);
         return geometry.interaction(ray, hit);
     }
-    bool occluded(const Ray &ray) const { return bvh.occluded(ray); }
+    bool occluded(const Ray &ray) const {
+        ++rays_traced;
+        return bvh.occluded(ray);
+    }
 
     /// Emitter attached to the surface hit, or the environment when the ray escaped.
     int emitter_at(const SurfaceInteraction &si) const {

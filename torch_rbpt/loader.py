@@ -60,7 +60,7 @@ PROPERTIES = {
 
 # Named indices of refraction (Mitsuba's ior.h).
 IOR = {
-    "vacuum": 1.0, "helium": 1.00004, "hydrogen": 1.00013, "air": 1.00028,
+    "vacuum": 1.0, "helium": 1.000036, "hydrogen": 1.000132, "air": 1.000277,
     "carbon dioxide": 1.00045, "water": 1.3330, "acetone": 1.36, "ethanol": 1.361,
     "carbon tetrachloride": 1.461, "glycerol": 1.4729, "benzene": 1.501,
     "silicone oil": 1.52045, "bromine": 1.661, "water ice": 1.31, "fused quartz": 1.458,
@@ -201,7 +201,10 @@ class _Builder:
             if value.lower() not in IOR:
                 self.fail(node, f"{node['type']}: unknown {name} '{value}' (known: {', '.join(IOR)})")
             return IOR[value.lower()]
-        return self.number(node, name)
+        ior = self.number(node, name)
+        if not ior > 0:
+            self.fail(node, f"{node['type']}: {name} must be positive, got {ior}")
+        return ior
 
     def resolve(self, node, filename) -> Path:
         p = Path(os.path.expanduser(str(filename)))
@@ -309,11 +312,12 @@ class _Builder:
         elif t == "roughplastic":
             refl = self.texture(node, "diffuse_reflectance", f"{key}.diffuse_reflectance", 0.5)
             spec = self.texture(node, "specular_reflectance", f"{key}.specular_reflectance", 1.0)
-            alpha = self.add_param(f"{key}.alpha.value", [self.number(node, "alpha", 0.1)])
+            # Mitsuba keys roughplastic's roughness as `<id>.alpha` (a plain float).
+            alpha = self.add_param(f"{key}.alpha", [self.number(node, "alpha", 0.1)])
             dist = self.string(node, "distribution", "beckmann", ("beckmann", "ggx"))
             eta = self.ior(node, "int_ior", "polypropylene") / self.ior(node, "ext_ior", "air")
             nonlinear = self.number(node, "nonlinear", False, bool)
-        if alpha >= 0 and not float(self.params[f"{key}.alpha.value"][0]) > 0:
+        if alpha >= 0 and not float(list(self.params.values())[alpha][0]) > 0:
             self.fail(node, f"{t}: alpha must be positive")
         index = self.native.add_bsdf(t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
         self.built_bsdfs[id(node)] = index
@@ -382,6 +386,8 @@ class _Builder:
         if t == "area":
             self.fail(node, "an area emitter must be nested in a shape")
         if t == "point":
+            if "position" in node and "to_world" in node:
+                self.fail(node, "point: give either 'position' or 'to_world', not both")
             position = self.vector(node, "position", [0, 0, 0])
             if "to_world" in node:
                 position = self.matrix(node) @ np.append(position, 1.0)
@@ -461,9 +467,7 @@ class _Builder:
 
     def integrator(self, node) -> Integrator:
         self.check(node, "integrator")
-        if self.number(node, "hide_emitters", False, bool):
-            self.fail(node, f"{node['type']}: hide_emitters=true is not supported")
-        i = Integrator(type=node["type"])
+        i = Integrator(type=node["type"], hide_emitters=self.number(node, "hide_emitters", False, bool))
         if i.type == "direct":
             shading = self.number(node, "shading_samples", 1, int)
             i.emitter_samples = self.number(node, "emitter_samples", shading, int)

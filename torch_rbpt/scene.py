@@ -115,11 +115,12 @@ class Integrator:
     rr_depth: int = 5
     emitter_samples: int = 1
     bsdf_samples: int = 1
+    hide_emitters: bool = False
 
     def native(self) -> dict:
         return {"type": "direct" if self.type == "direct" else "path", "max_depth": self.max_depth,
                 "rr_depth": self.rr_depth, "emitter_samples": self.emitter_samples,
-                "bsdf_samples": self.bsdf_samples}
+                "bsdf_samples": self.bsdf_samples, "hide_emitters": self.hide_emitters}
 
 
 class Scene:
