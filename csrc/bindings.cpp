@@ -233,6 +233,35 @@ py::tuple bsdf_query(const Scene &scene, const std::vector<torch::Tensor> &param
                : bsdf_query_typed<float>(scene, params, index, wi, wo, u1, u2, uv);
 }
 
+/// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
+py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
+    origins = float_array(origins, 3, "origins");
+    directions = float_array(directions, 3, "directions");
+    int64_t n = origins.size(0);
+    if (directions.size(0) != n) fail("origins and directions must have the same length");
+    torch::Tensor t = torch::full({n}, std::numeric_limits<float>::infinity(), torch::kFloat32);
+    torch::Tensor shape = torch::full({n}, -1, torch::kInt64);
+    const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
+    float *pt = t.data_ptr<float>();
+    int64_t *ps = shape.data_ptr<int64_t>();
+    {
+        py::gil_scoped_release release;
+        at::parallel_for(0, n, 1024, [&](int64_t begin, int64_t end) {
+            for (int64_t i = begin; i < end; ++i) {
+                Ray ray;
+                ray.o = {o[3 * i], o[3 * i + 1], o[3 * i + 2]};
+                ray.d = normalize(Vec3{d[3 * i], d[3 * i + 1], d[3 * i + 2]});
+                SurfaceInteraction si = scene.intersect(ray);
+                if (si.valid) {
+                    pt[i] = si.t;
+                    ps[i] = si.shape;
+                }
+            }
+        });
+    }
+    return py::make_tuple(t, shape);
+}
+
 // ---- Scene construction ------------------------------------------------------------------
 
 int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
@@ -416,4 +445,5 @@ PYBIND11_MODULE(_C, m) {
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
           py::arg("row_end") = -1);
     m.def("bsdf_query", &bsdf_query);
+    m.def("intersect_rays", &intersect_rays);
 }

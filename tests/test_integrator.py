@@ -64,6 +64,13 @@ def test04_direct_integrator_one_bounce():
         assert float(image.mean()) == pytest.approx(1.5, rel=5e-3), (es, bs)
 
 
+def test04b_hide_emitters_drops_only_directly_seen_emission():
+    scene = _closed_sphere(0.5, 1.0, {"type": "path", "hide_emitters": True})
+    image = tr.render(scene, spp=4096, seed=6).double()
+    # Le / (1 - a) without the directly seen Le.
+    assert float(image.mean()) == pytest.approx(1.0, rel=5e-3)
+
+
 def test05_same_image_for_one_and_two_threads(shared):
     scene = tr.load_file(shared / "cbox/cbox.xml", res=24)
     old = torch.get_num_threads()
