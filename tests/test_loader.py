@@ -197,6 +197,12 @@ def test16_fov_axis_and_focal_length():
     assert s.x_fov() == pytest.approx(np.degrees(2 * np.arctan(np.tan(np.radians(20)) * 2)))
     s.fov_axis = "larger"
     assert s.x_fov() == pytest.approx(40)
+    # No fov: Mitsuba's 50 mm lens on a 36 x 24 mm film, along the diagonal (values read
+    # off Mitsuba 3.9.1's x_fov for 64x32 and 32x64 films).
+    for size, x_fov in [((64, 32), 42.31171), ((32, 64), 21.90214)]:
+        s = tr.load_dict({"type": "scene", "sensor": {"type": "perspective", "film": {
+            "type": "hdrfilm", "width": size[0], "height": size[1]}}}).sensor
+        assert s.x_fov() == pytest.approx(x_fov, abs=1e-4)
 
 
 def test17_bundled_scene_loads():

@@ -74,8 +74,8 @@ class Sensor:
     """`perspective` sensor. `fov` is along `fov_axis`, resolved against the film's aspect
     ratio at render time (so changing the film size keeps Mitsuba's meaning)."""
     to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
-    fov: float = 39.597755  # 50 mm lens
-    fov_axis: str = "x"
+    fov: float = 46.793003  # Mitsuba's default 50 mm lens: diagonal fov of a 36 x 24 mm film
+    fov_axis: str = "diagonal"
     near_clip: float = 1e-2
     far_clip: float = 1e4
     film: Film = field(default_factory=Film)
