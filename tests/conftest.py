@@ -16,7 +16,7 @@ def bsdf_scene(bsdf: dict, dtype=torch.float32):
     return tr.load_dict({"type": "scene", "mat": bsdf}, dtype=dtype)
 
 
-def query_bsdf(scene, wi, wo=None, u1=None, u2=None, index=0):
+def query_bsdf(scene, wi, wo=None, u1=None, u2=None, index=0, uv=None):
     """Evaluate/sample BSDF `index` of `scene` for local directions.
     Returns (eval (N,3), pdf (N,), sampled wo (N,3), sampled pdf (N,), weight (N,3), delta (N,))."""
     wi = torch.as_tensor(wi, dtype=torch.float32).reshape(-1, 3)
@@ -24,7 +24,7 @@ def query_bsdf(scene, wi, wo=None, u1=None, u2=None, index=0):
     wo = wi if wo is None else torch.as_tensor(wo, dtype=torch.float32).reshape(-1, 3)
     u1 = torch.full((n,), 0.5) if u1 is None else u1
     u2 = torch.full((n, 2), 0.5) if u2 is None else u2
-    uv = torch.full((n, 2), 0.5)
+    uv = torch.full((n, 2), 0.5) if uv is None else torch.as_tensor(uv, dtype=torch.float32).reshape(-1, 2)
     return tr._C.bsdf_query(scene._native, scene.param_list(), index, wi, wo, u1, u2, uv)
 
 

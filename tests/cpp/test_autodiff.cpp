@@ -250,9 +250,10 @@ static void test01_operations() {
                     zero, a0, b0);
     check_binary<N>("rgb * x", [](auto x, auto) {
                         using T = typename decltype(x)::Scalar;
-                        return RGB<T>(T(1), T(2), T(3)) * x;
+                        return RGB<T>(T(2), T(2), T(2)) * x;
                     },
-                    [](double x, double) { return x; }, plus1, zero, {1, 1, 1}, b0);
+                    [](double x, double) { return 2 * x; },
+                    [](double, double) { return 2.0; }, zero, a0, b0);
 }
 
 // ---- 2. Composite expressions against finite differences; Var and Dual agree --------------
