@@ -162,6 +162,8 @@ private:
         int32_t a, b;  ///< parents (-1: none); a Custom node keeps its functor index in a
         Kind kind;
         RGB<T> da, db;  ///< partials; a Leaf accumulates its gradient in da
+        Node(int32_t a, int32_t b, Kind kind, const RGB<T> &da, const RGB<T> &db)
+            : a(a), b(b), kind(kind), da(da), db(db) {}
     };
 
     /// A custom backward functor living in the arena.
@@ -182,16 +184,16 @@ private:
         static_cast<F *>(p)->~F();
     }
 
-    int32_t push(const Node &n) {
+    int32_t push(int32_t a, int32_t b, Kind kind, const RGB<T> &da, const RGB<T> &db) {
         assert(nodes_.size() < size_t(INT32_MAX));
-        nodes_.push_back(n);
+        nodes_.emplace_back(a, b, kind, da, db);  // built in place
         return int32_t(nodes_.size() - 1);
     }
     int32_t push_op(int32_t a, const RGB<T> &da, int32_t b, const RGB<T> &db) {
-        if (a < 0) return push({b, -1, Kind::Op, db, RGB<T>()});
-        return push({a, b, Kind::Op, da, db});
+        if (a < 0) return push(b, -1, Kind::Op, db, RGB<T>());
+        return push(a, b, Kind::Op, da, db);
     }
-    int32_t push_leaf() { return push({-1, -1, Kind::Leaf, RGB<T>(), RGB<T>()}); }
+    int32_t push_leaf() { return push(-1, -1, Kind::Leaf, RGB<T>(), RGB<T>()); }
     template <typename F>
     int32_t push_custom(F &&f) {
         using Fn = std::decay_t<F>;
@@ -202,7 +204,7 @@ private:
         customs_.push_back({&call_thunk<Fn>,
                             std::is_trivially_destructible_v<Fn> ? nullptr : &destroy_thunk<Fn>, p,
                             mark, node});
-        return push({int32_t(customs_.size() - 1), -1, Kind::Custom, RGB<T>(), RGB<T>()});
+        return push(int32_t(customs_.size() - 1), -1, Kind::Custom, RGB<T>(), RGB<T>());
     }
 
     /// Reverse sweep from `root` seeded with `seed`, over the nodes at or above the floor.
@@ -354,6 +356,8 @@ public:
         return r;
     }
 
+    /// Componentwise arithmetic; scalars and RGB<T> operands convert to constants, so only
+    /// operands that are recorded become parents.
     friend Var operator+(const Var &a, const Var &b) {
         return binary(a.value_ + b.value_, a, b, [] { return RGB<T>(T(1)); },
                       [] { return RGB<T>(T(1)); });
@@ -374,6 +378,7 @@ public:
     friend Var operator-(const Var &a) {
         return unary(T(-1) * a.value_, a, [] { return RGB<T>(T(-1)); });
     }
+    /// Compound assignment: rebinds this Var to the new (recorded) result.
     Var &operator+=(const Var &b) { return *this = *this + b; }
     Var &operator-=(const Var &b) { return *this = *this - b; }
     Var &operator*=(const Var &b) { return *this = *this * b; }
@@ -441,19 +446,22 @@ Var<T> max(const Var<T> &a, const Var<T> &b) {
     return Var<T>::binary(sel * x + (T(1) - sel) * y, a, b, [&] { return sel; },
                           [&] { return T(1) - sel; });
 }
-/// min/max of a Var and a constant scalar (broadcast).
+/// min of a Var and a constant scalar (broadcast).
 template <typename T>
 Var<T> min(const Var<T> &a, typename Var<T>::Scalar b) {
     return min(a, Var<T>(b));
 }
+/// min of a constant scalar and a Var.
 template <typename T>
 Var<T> min(typename Var<T>::Scalar a, const Var<T> &b) {
     return min(Var<T>(a), b);
 }
+/// max of a Var and a constant scalar.
 template <typename T>
 Var<T> max(const Var<T> &a, typename Var<T>::Scalar b) {
     return max(a, Var<T>(b));
 }
+/// max of a constant scalar and a Var.
 template <typename T>
 Var<T> max(typename Var<T>::Scalar a, const Var<T> &b) {
     return max(Var<T>(a), b);
@@ -464,6 +472,7 @@ Var<T> no_grad(const Var<T> &x) {
     return x.detach();
 }
 
+/// Traits for the path tracer: scalars are Vars; detach() gives the value as a Color3f.
 template <typename T>
 struct SpectrumTraits<Var<T>> {
     using Real = Var<T>;  ///< scalars are RGB with equal channels

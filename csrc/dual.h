@@ -42,6 +42,7 @@ struct Dual {
     /// A constant with the same value. (The free detach() of math.h gives a Color3f.)
     Dual detach() const { return Dual(v); }
 
+    /// Componentwise arithmetic; scalars and RGB<T> operands convert to constants.
     friend Dual operator+(const Dual &a, const Dual &b) { return {a.v + b.v, a.d + b.d}; }
     friend Dual operator-(const Dual &a, const Dual &b) { return {a.v - b.v, a.d - b.d}; }
     friend Dual operator*(const Dual &a, const Dual &b) {
@@ -52,6 +53,7 @@ struct Dual {
         return {q, (a.d - q * b.d) / b.v};
     }
     friend Dual operator-(const Dual &a) { return {T(-1) * a.v, T(-1) * a.d}; }
+    /// Compound assignment.
     Dual &operator+=(const Dual &b) { return *this = *this + b; }
     Dual &operator-=(const Dual &b) { return *this = *this - b; }
     Dual &operator*=(const Dual &b) { return *this = *this * b; }
@@ -131,19 +133,22 @@ Dual<T> max(const Dual<T> &a, const Dual<T> &b) {
     }
     return r;
 }
-/// min/max of a Dual and a constant scalar (broadcast).
+/// min of a Dual and a constant scalar (broadcast).
 template <typename T>
 Dual<T> min(const Dual<T> &a, typename Dual<T>::Scalar b) {
     return min(a, Dual<T>(b));
 }
+/// min of a constant scalar and a Dual.
 template <typename T>
 Dual<T> min(typename Dual<T>::Scalar a, const Dual<T> &b) {
     return min(Dual<T>(a), b);
 }
+/// max of a Dual and a constant scalar.
 template <typename T>
 Dual<T> max(const Dual<T> &a, typename Dual<T>::Scalar b) {
     return max(a, Dual<T>(b));
 }
+/// max of a constant scalar and a Dual.
 template <typename T>
 Dual<T> max(typename Dual<T>::Scalar a, const Dual<T> &b) {
     return max(Dual<T>(a), b);
@@ -154,6 +159,7 @@ Dual<T> no_grad(const Dual<T> &x) {
     return x.detach();
 }
 
+/// Traits for the path tracer: scalars are Duals; detach() gives the value as a Color3f.
 template <typename T>
 struct SpectrumTraits<Dual<T>> {
     using Real = Dual<T>;  ///< scalars are RGB with equal channels

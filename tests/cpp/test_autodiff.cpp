@@ -646,10 +646,15 @@ static void test09_long_chains() {
 
 // ---- 5. integrate(): independent samples, unbiased gradients, nesting ----------------------
 
-/// A deterministic sequence u_k = frac(0.5 + k phi) (pdf 1) that counts the samples drawn.
+/// A deterministic sequence u_k = frac(0.5 + k phi) (pdf 1): its position k is its own state
+/// (copies continue independently), and every draw is also counted in *count.
 struct CountingSampler {
     int *count;
-    std::pair<double, double> operator()() { return {u((*count)++), 1.0}; }
+    int k = 0;
+    std::pair<double, double> operator()() {
+        ++*count;
+        return {u(k++), 1.0};
+    }
     static double u(int k) {
         double v = 0.5 + 0.6180339887498949 * k;
         return v - std::floor(v);
@@ -710,6 +715,13 @@ static void test10_integrate_uses_new_samples() {
     I.backward(RGB<T>(T(2)));  // a second backward draws yet new samples and accumulates
     CHECK(count == 3 * n);
     CHECK_RGB(theta.grad(), mean_over(n, df) + 2.0 * mean_over(2 * n, df), 10 * tolerance<T>());
+    {
+        NoRecord guard;  // backward records what it needs even under NoRecord
+        I.backward();
+    }
+    CHECK(count == 4 * n);
+    CHECK_RGB(theta.grad(), mean_over(n, df) + 2.0 * mean_over(2 * n, df) + mean_over(3 * n, df),
+              10 * tolerance<T>());
 
     // The custom node inside a larger graph: loss = I theta + exp(theta). The outer sweep
     // must carry both the inner deposit and theta's other paths.
