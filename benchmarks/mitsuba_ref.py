@@ -13,6 +13,7 @@ that file exists (libLLVM 15 crashes with the installed drjit).
 from __future__ import annotations
 
 import os
+import re
 import time
 import xml.etree.ElementTree as ET
 
@@ -120,9 +121,10 @@ def _set_film_size(root: ET.Element, width, height) -> None:
                 ET.SubElement(film, "integer", {"name": name, "value": str(int(val))})
 
 
-def scene_xml(path, width=None, height=None) -> str:
-    """The XML text Mitsuba is given by ``load_scene``: includes inlined, <path> elements
-    removed (existing folders are added to the resolver instead), film size replaced."""
+def scene_xml(path, width=None, height=None):
+    """Returns (xml_text, search_folders): the XML text ``load_scene`` gives Mitsuba
+    (includes inlined, <path> elements removed, film size replaced) and the folders to
+    prepend to Mitsuba's file resolver (the scene's folder, then existing <path> folders)."""
     path = os.path.abspath(str(path))
     folder = os.path.dirname(path)
     root = ET.parse(path).getroot()
@@ -133,25 +135,36 @@ def scene_xml(path, width=None, height=None) -> str:
     return ET.tostring(root, encoding="unicode"), search
 
 
-def load_scene(path, width=None, height=None, **defaults):
+def load_scene(path, width=None, height=None, optimize=True, **defaults):
     """Load a Mitsuba 3 XML scene file.
 
-    ``defaults`` override the file's ``<default name=... value=...>`` parameters (values are
-    converted with ``str``).  ``<include>`` files are inlined and ``<path>`` elements that
-    name missing folders are dropped (Mitsuba's loader fails on them; veach-mis has one);
-    existing ``<path>`` folders and the scene's own folder are prepended to Mitsuba's file
-    resolver while loading (the resolver is restored afterwards).  If ``width``/``height``
-    are given, the film's ``width``/``height`` are replaced; everything else (rfilter, fov,
-    fov_axis, no crop) is kept as in the file."""
+    ``defaults`` override the file's ``<default name=... value=...>`` parameters (values
+    are converted with ``str``; names whose ``$name`` does not occur in the XML, e.g.
+    ``res`` once the film size is replaced, are ignored, so a misspelt name is not an
+    error).  ``<include>`` files are inlined and ``<path>`` elements that name missing
+    folders are dropped (Mitsuba's loader fails on them; veach-mis has one); existing
+    ``<path>`` folders and the scene's own folder are prepended to Mitsuba's file resolver
+    while loading (the resolver is restored afterwards).  If ``width``/``height`` are
+    given, the film's ``width``/``height`` are replaced; everything else (rfilter, fov,
+    fov_axis, no crop) is kept as in the file.
+
+    ``optimize`` is passed to ``mi.load_string``.  Mitsuba's default (True) merges meshes
+    that share a BSDF (e.g. cbox's floor/ceiling/back become one ``object_<addr>`` mesh)
+    and deduplicates identical BSDFs, which changes ``mi.traverse`` keys but not the image;
+    use ``optimize=False`` to keep every shape id."""
     mi = _mitsuba()
     text, search = scene_xml(path, width, height)
-    fr = mi.file_resolver()
+    fr = mi.file_resolver() if hasattr(mi, "file_resolver") else \
+        mi.Thread.thread().file_resolver()
     saved = [str(p) for p in fr]
     try:
         for d in reversed(search):
             fr.prepend(d)
-        kwargs = {k: str(v) for k, v in defaults.items()}
-        return mi.load_string(text, **kwargs)
+        # Overrides whose $variable no longer occurs (e.g. $res after replacing the film
+        # size) would make Mitsuba fail with "Found unused parameters": drop them.
+        kwargs = {k: str(v) for k, v in defaults.items()
+                  if re.search(r"\$%s\b" % re.escape(k), text)}
+        return mi.load_string(text, optimize=optimize, **kwargs)
     finally:
         fr.clear()
         for p in saved:

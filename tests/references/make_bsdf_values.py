@@ -94,7 +94,7 @@ SAMPLE_BSDFS = ["dielectric", "conductor", "roughconductor_ggx_a0.4",
 RES = 64  # MI_ROUGH_TRANSMITTANCE_RES
 
 
-def roughplastic_internal(mi, d, make_si):
+def roughplastic_internal(mi, d_orig, make_si):
     """Recover roughplastic's precomputed data from its diffuse-component evaluations.
 
     Mitsuba 3.9.1 roughplastic (src/bsdfs/roughplastic.cpp) evaluates its diffuse lobe as
@@ -106,7 +106,7 @@ def roughplastic_internal(mi, d, make_si):
     wo at cos mu (diffuse component only, ctx.component = 1):
         v(mu) = A t(1) t(mu) mu,  A = diff / (1 - R_int) * inv_eta_2 / pi,
     R_int from the ratio of the nonlinear and linear variants at wi = wo = normal."""
-    d = dict(d)
+    d = dict(d_orig)
     d["diffuse_reflectance"] = 0.5  # uniform, to make the algebra scalar; tables don't use it
     ctx = mi.BSDFContext()
     ctx.component = 1
@@ -138,9 +138,8 @@ def roughplastic_internal(mi, d, make_si):
         else:
             table.append(ev(b_lin, n, dirn(mu)) / (A * t1 * mu))
     # validation: rebuild diffuse evals of the original BSDF at random directions
-    b = mi.load_dict(BSDF_DICT_CURRENT[0])
-    diff0 = float(mi.load_dict(BSDF_DICT_CURRENT[0]).eval_diffuse_reflectance(
-        make_si([0, 0, 1]))[0])
+    b = mi.load_dict(d_orig)
+    diff0 = float(b.eval_diffuse_reflectance(make_si([0, 0, 1]))[0])
 
     def lerp(x):
         x *= RES - 1
@@ -163,9 +162,6 @@ def roughplastic_internal(mi, d, make_si):
         external_transmittance_mu=[max(1e-6, k / (RES - 1)) for k in range(RES)],
         external_transmittance=table,
         max_rel_err_rebuilding_200_diffuse_evals=err)
-
-
-BSDF_DICT_CURRENT = [None]
 
 
 def main():
@@ -215,7 +211,6 @@ def main():
                                        eval=f3(val), pdf=float(pdf)))
         m = re.search(r"specular_sampling_weight = ([0-9.eE+-]+)", str(bsdf))
         if m:
-            BSDF_DICT_CURRENT[0] = d
             entry["internal"] = roughplastic_internal(mi, d, make_si)
             entry["internal"]["specular_sampling_weight_printed"] = float(m.group(1))
             print("   R_int %.6f, t(1) %.6f, t(0) %.6f, max rel err %.2e" % (
@@ -240,8 +235,26 @@ def main():
         out["bsdfs"][name] = entry
         print("%-32s %s" % (name, entry["traverse"]))
     path = os.path.join(HERE, "bsdf_values.json")
+    # one line per eval/sample record and per list of numbers: small and still readable
+    rows = {}
+    for e in out["bsdfs"].values():
+        for key in ("evals", "samples"):
+            tags = []
+            for r in e.get(key, []):
+                tag = "@@%d@@" % len(rows)
+                rows[tag] = json.dumps(r)
+                tags.append(tag)
+            if key in e:
+                e[key] = tags
+    text = json.dumps(out, indent=1)
+    for tag, row in rows.items():
+        text = text.replace('"%s"' % tag, row)
+    text = re.sub(r"\[\s*([-0-9.eE+,\s]*?)\s*\]",
+                  lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]"
+                  if m.group(1).strip() else "[]", text)
+    json.loads(text)  # still valid json
     with open(path, "w") as f:
-        json.dump(out, f, indent=1)
+        f.write(text + "\n")
     print("wrote", path)
 
 

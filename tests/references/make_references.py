@@ -136,6 +136,8 @@ def main():
                      exr=name + ".exr", exr_format="OpenEXR, float32 RGB (R,G,B), ZIP")
         if w is not None:
             entry["film_override"] = [w, h]
+        # render_seconds are wall-clock; record how busy the (2-core) machine was
+        entry["load_avg_1min_before"] = round(os.getloadavg()[0], 2)
         if "same_as" in r:
             if r["same_as"] not in images:  # not rendered in this run: use the stored one
                 images[r["same_as"]] = dict(
@@ -191,7 +193,9 @@ def main():
                      "torch_rbpt/. Each image is the mean of two half-spp renders with seeds "
                      "'seeds'; noise_half_diff = mean |a-b|/max(|ref|,0.02) over pixels and "
                      "channels; noise_ref_est = noise_half_diff/2 estimates the reference's "
-                     "own relative error."),
+                     "own relative error. render_seconds is wall-clock time on a 2-core machine; "
+                     "load_avg_1min_before (if present) shows how busy it was (this script's own "
+                     "previous render alone gives ~2)."),
         references=meta)
     with open(jpath, "w") as f:
         json.dump(doc, f, indent=2)
