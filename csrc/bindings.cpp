@@ -125,12 +125,17 @@ Params<RGB<T>> bind_params(const Scene &scene, const std::vector<torch::Tensor> 
     return p;
 }
 
-/// Run `job` once on each thread of torch's intra-op pool.
-void run_on_pool(const std::function<void()> &job) {
-    int n = at::get_num_threads();
-    at::parallel_for(0, n, 1, [&](int64_t begin, int64_t end) {
-        for (int64_t i = begin; i < end; ++i) job();
-    });
+/// torch's intra-op pool: runs a job once per thread (torch.set_num_threads is honoured).
+WorkerPool torch_pool() {
+    WorkerPool pool;
+    pool.workers = at::get_num_threads();
+    int n = pool.workers;
+    pool.run = [n](const std::function<void()> &job) {
+        at::parallel_for(0, n, 1, [&](int64_t begin, int64_t end) {
+            for (int64_t i = begin; i < end; ++i) job();
+        });
+    };
+    return pool;
 }
 
 template <typename T>
@@ -145,13 +150,13 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     T *data = out.data_ptr<T>();
     {
         py::gil_scoped_release release;
-        render(ctx, cam, cfg, req, data, run_on_pool);
+        render_fwd(ctx, cam, cfg, req, data, torch_pool());
     }
     return out;
 }
 
 /// Render an image; returns (image (H, W, 3) of the parameters' dtype, rays traced).
-py::tuple render_fwd(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dict &integrator,
                      const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
                      int row_begin, int row_end) {
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
@@ -169,6 +174,105 @@ py::tuple render_fwd(const Scene &scene, const py::dict &camera, const py::dict 
     torch::Tensor image = dbl ? render_typed<double>(scene, cam, cfg, params, req, &rays)
                               : render_typed<float>(scene, cam, cfg, params, req, &rays);
     return py::make_tuple(image, rays);
+}
+
+RenderRequest whole_image(const Camera &cam, int spp, uint64_t seed) {
+    if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
+    RenderRequest req;
+    req.spp = spp;
+    req.seed = seed;
+    req.row_end = cam.crop_height;
+    return req;
+}
+
+template <typename T>
+std::vector<std::optional<torch::Tensor>> render_bwd_typed(
+    const Scene &scene, const Camera &cam, const IntegratorSettings &cfg,
+    const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
+    const torch::Tensor &adjoint, const RenderRequest &req) {
+    Params<RGB<T>> values = bind_params<T>(scene, params);
+    auto opts = torch::TensorOptions().dtype(std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64);
+    std::vector<std::optional<torch::Tensor>> out(params.size());
+    std::vector<T *> grads(params.size(), nullptr);
+    for (size_t p = 0; p < params.size(); ++p) {
+        if (!requires_grad[p]) continue;
+        out[p] = torch::zeros(params[p].sizes(), opts);
+        grads[p] = out[p]->data_ptr<T>();
+    }
+    const T *dL = adjoint.data_ptr<T>();
+    {
+        py::gil_scoped_release release;
+        render_bwd(scene, values, cam, cfg, req, dL, grads, torch_pool());
+    }
+    return out;
+}
+
+/// Radiative backpropagation: gradients of sum(grad_image * image) with respect to the
+/// parameters flagged in requires_grad (None for the others).
+std::vector<std::optional<torch::Tensor>> render_bwd_entry(
+    const Scene &scene, const py::dict &camera, const py::dict &integrator,
+    const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
+    torch::Tensor grad_image, int spp, uint64_t seed) {
+    Camera cam = make_camera(camera);
+    IntegratorSettings cfg = make_integrator(integrator);
+    RenderRequest req = whole_image(cam, spp, seed);
+    if (requires_grad.size() != params.size()) fail("requires_grad must have one flag per parameter");
+    bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
+    auto dtype = dbl ? torch::kFloat64 : torch::kFloat32;
+    if (grad_image.dim() != 3 || grad_image.size(0) != cam.crop_height ||
+        grad_image.size(1) != cam.crop_width || grad_image.size(2) != 3)
+        fail("the image gradient must have shape [" + std::to_string(cam.crop_height) + ", " +
+             std::to_string(cam.crop_width) + ", 3], got " + std::string(c10::str(grad_image.sizes())));
+    grad_image = grad_image.to(torch::kCPU, dtype).contiguous();
+    return dbl ? render_bwd_typed<double>(scene, cam, cfg, params, requires_grad, grad_image, req)
+               : render_bwd_typed<float>(scene, cam, cfg, params, requires_grad, grad_image, req);
+}
+
+template <typename T>
+py::tuple render_jvp_typed(const Scene &scene, const Camera &cam, const IntegratorSettings &cfg,
+                           const std::vector<torch::Tensor> &params,
+                           const std::vector<std::optional<torch::Tensor>> &tangents,
+                           const RenderRequest &req) {
+    Params<RGB<T>> values = bind_params<T>(scene, params);
+    Params<Dual<T>> dual;
+    dual.data = values.data;
+    dual.numel = values.numel;
+    dual.tangent.assign(params.size(), nullptr);
+    std::vector<torch::Tensor> keep;
+    auto dtype = std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64;
+    for (size_t p = 0; p < params.size(); ++p) {
+        if (!tangents[p]) continue;
+        torch::Tensor t = tangents[p]->to(torch::kCPU, dtype).contiguous();
+        if (t.numel() != values.numel[p])
+            fail("tangent of '" + scene.params[p].name + "' must have " +
+                 std::to_string(values.numel[p]) + " entries, got " + std::to_string(t.numel()));
+        keep.push_back(t);
+        dual.tangent[p] = t.data_ptr<T>();
+    }
+    RenderContext<Dual<T>> ctx(scene, dual);
+    auto opts = torch::TensorOptions().dtype(dtype);
+    torch::Tensor image = torch::empty({cam.crop_height, cam.crop_width, 3}, opts);
+    torch::Tensor tangent = torch::empty({cam.crop_height, cam.crop_width, 3}, opts);
+    T *pi = image.data_ptr<T>(), *pt = tangent.data_ptr<T>();
+    {
+        py::gil_scoped_release release;
+        render_jvp(ctx, cam, cfg, req, pi, pt, torch_pool());
+    }
+    return py::make_tuple(image, tangent);
+}
+
+/// Forward mode: (image, derivative of the image along the parameter tangents).
+py::tuple render_jvp_entry(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                           const std::vector<torch::Tensor> &params,
+                           const std::vector<std::optional<torch::Tensor>> &tangents, int spp,
+                           uint64_t seed) {
+    Camera cam = make_camera(camera);
+    IntegratorSettings cfg = make_integrator(integrator);
+    RenderRequest req = whole_image(cam, spp, seed);
+    if (tangents.size() != params.size()) fail("tangents must have one entry per parameter");
+    bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
+    return dbl ? render_jvp_typed<double>(scene, cam, cfg, params, tangents, req)
+               : render_jvp_typed<float>(scene, cam, cfg, params, tangents, req);
 }
 
 // ---- BSDF queries in the local frame, for statistical tests -----------------------------
@@ -441,9 +545,15 @@ PYBIND11_MODULE(_C, m) {
                                [](const Scene &s) { return s.geometry.triangles.size(); })
         .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
         .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); });
-    m.def("render_fwd", &render_fwd, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
+    m.def("render_fwd", &render_image, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
           py::arg("row_end") = -1);
+    m.def("render_bwd", &render_bwd_entry, py::arg("scene"), py::arg("camera"),
+          py::arg("integrator"), py::arg("params"), py::arg("requires_grad"),
+          py::arg("grad_image"), py::arg("spp"), py::arg("seed"));
+    m.def("render_jvp", &render_jvp_entry, py::arg("scene"), py::arg("camera"),
+          py::arg("integrator"), py::arg("params"), py::arg("tangents"), py::arg("spp"),
+          py::arg("seed"));
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
 }

@@ -57,6 +57,8 @@ struct RoughPlasticTables {
 struct BSDFState {
     float specular_sampling_weight = 0.5f;  ///< roughplastic
     const RoughPlasticTables *tables = nullptr;
+    /// Derivatives of `tables` with respect to alpha, when alpha is being differentiated.
+    const RoughPlasticTables *dtables = nullptr;
 };
 
 template <typename S>
@@ -209,14 +211,23 @@ struct RoughPlasticBSDF {
                          smith_G1(b.distribution, alpha, wi, h) *
                          smith_G1(b.distribution, alpha, wo, h) / (4.f * wi.z);
         S value = detail::texture<S>(b.specular_reflectance, ctx, si) * spec;
+        // The rough-interface terms depend on alpha through the tables; to first order,
+        // t(alpha) = t(alpha0) + dt/dalpha (alpha - alpha0), with dt/dalpha tabulated.
+        real_t<S> t_i = tab.transmittance(wi.z), t_o = tab.transmittance(wo.z);
+        real_t<S> r_int = tab.internal_reflectance;
+        if (state.dtables) {
+            real_t<S> dalpha = alpha - no_grad(alpha);
+            t_i = t_i + state.dtables->transmittance(wi.z) * dalpha;
+            t_o = t_o + state.dtables->transmittance(wo.z) * dalpha;
+            r_int = r_int + state.dtables->internal_reflectance * dalpha;
+        }
         S diff = detail::texture<S>(b.reflectance, ctx, si);
         if (b.nonlinear) {
-            diff = diff / (real_t<S>(1) - diff * real_t<S>(tab.internal_reflectance));
+            diff = diff / (real_t<S>(1) - diff * r_int);
         } else {
-            diff = diff / real_t<S>(1.f - tab.internal_reflectance);
+            diff = diff / (real_t<S>(1) - r_int);
         }
-        float k = InvPi / (b.eta * b.eta) * wo.z * tab.transmittance(wi.z) * tab.transmittance(wo.z);
-        return value + diff * real_t<S>(k);
+        return value + diff * (t_i * t_o * real_t<S>(InvPi / (b.eta * b.eta) * wo.z));
     }
     /// Probability of sampling the specular lobe at incidence cos_i.
     static float specular_probability(const BSDFState &state, float cos_i) {

@@ -136,6 +136,9 @@ inline Color3f detach(const S &s) { return SpectrumTraits<S>::detach(s); }
 /// Value of a scalar of any number type, without derivatives (overloaded by autodiff types).
 inline float detach_real(float x) { return x; }
 inline float detach_real(double x) { return float(x); }
+/// The same value as a constant of its own type (overloaded by autodiff types).
+inline float no_grad(float x) { return x; }
+inline double no_grad(double x) { return x; }
 
 inline float max_component(const Color3f &c) { return std::max(c.v[0], std::max(c.v[1], c.v[2])); }
 inline float mean(const Color3f &c) { return (c.v[0] + c.v[1] + c.v[2]) / 3.f; }

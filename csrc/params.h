@@ -7,12 +7,23 @@
 #include <cstdint>
 #include <vector>
 
+#include "autodiff.h"
+#include "dual.h"
 #include "math.h"
 
 namespace rbpt {
 
 template <typename S>
 struct Params;
+
+namespace detail {
+template <typename T>
+float mean_of(const T *d, int64_t n) {
+    double sum = 0.0;
+    for (int64_t i = 0; i < n; ++i) sum += double(d[i]);
+    return n > 0 ? float(sum / double(n)) : 0.f;
+}
+}  // namespace detail
 
 /// Plain float/double parameters, read straight from caller-owned contiguous buffers.
 template <typename T>
@@ -21,14 +32,17 @@ struct Params<RGB<T>> {
     std::vector<int64_t> numel;
 
     /// RGB value of a parameter of 3 entries, or a scalar broadcast to RGB.
-    RGB<T> spectrum(int p) const {
-        const T *d = data[p];
-        return numel[p] == 1 ? RGB<T>(d[0]) : RGB<T>(d[0], d[1], d[2]);
-    }
+    RGB<T> spectrum(int p) const { return value_of(data[p], numel[p]); }
     T real(int p) const { return data[p][0]; }
     /// Weighted sum of `n` texels (pixel indices) of an (H, W, C) bitmap parameter.
     RGB<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
-        const T *d = data[p];
+        return gather(data[p], channels, index, weight, n);
+    }
+
+    static RGB<T> value_of(const T *d, int64_t numel) {
+        return numel == 1 ? RGB<T>(d[0]) : RGB<T>(d[0], d[1], d[2]);
+    }
+    static RGB<T> gather(const T *d, int channels, const int64_t *index, const float *weight, int n) {
         RGB<T> r(T(0));
         for (int k = 0; k < n; ++k) {
             const T *texel = d + index[k] * channels;
@@ -42,11 +56,78 @@ struct Params<RGB<T>> {
         return r;
     }
     /// Detached mean over a parameter's entries (for sampling weights).
-    float mean(int p) const {
-        double sum = 0.0;
-        for (int64_t i = 0; i < numel[p]; ++i) sum += double(data[p][i]);
-        return numel[p] > 0 ? float(sum / double(numel[p])) : 0.f;
+    float mean(int p) const { return detail::mean_of(data[p], numel[p]); }
+    bool differentiable(int) const { return false; }
+};
+
+/// Reverse mode: parameters that require gradients are read as custom nodes whose backward
+/// step adds the incoming adjoint into this worker's gradient buffer (`grad`, one per
+/// parameter; nullptr for constants, which record nothing).
+template <typename T>
+struct Params<Var<T>> {
+    std::vector<const T *> data;
+    std::vector<int64_t> numel;
+    std::vector<T *> grad;
+
+    Var<T> spectrum(int p) const {
+        RGB<T> v = Params<RGB<T>>::value_of(data[p], numel[p]);
+        T *g = grad[p];
+        if (!g) return Var<T>(v);
+        if (numel[p] == 1)
+            return Var<T>(Var<T>(v), [g](const RGB<T> &d) { g[0] += d[0] + d[1] + d[2]; });
+        return Var<T>(Var<T>(v), [g](const RGB<T> &d) {
+            g[0] += d[0];
+            g[1] += d[1];
+            g[2] += d[2];
+        });
     }
+    Var<T> real(int p) const { return spectrum(p); }
+    Var<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
+        RGB<T> v = Params<RGB<T>>::gather(data[p], channels, index, weight, n);
+        T *g = grad[p];
+        if (!g) return Var<T>(v);
+        // Scatter the adjoint to the (up to) four texels, weighted as in the lookup.
+        struct Texels {
+            int64_t index[4];
+            float weight[4];
+            int n, channels;
+        } t{{index[0], index[1], index[2], index[3]}, {weight[0], weight[1], weight[2], weight[3]}, n, channels};
+        return Var<T>(Var<T>(v), [g, t](const RGB<T> &d) {
+            for (int k = 0; k < t.n; ++k) {
+                T w = T(t.weight[k]);
+                T *texel = g + t.index[k] * t.channels;
+                if (t.channels == 1) {
+                    texel[0] += w * (d[0] + d[1] + d[2]);
+                } else {
+                    for (int c = 0; c < 3; ++c) texel[c] += w * d[c];
+                }
+            }
+        });
+    }
+    float mean(int p) const { return detail::mean_of(data[p], numel[p]); }
+    bool differentiable(int p) const { return grad[p] != nullptr; }
+};
+
+/// Forward mode: each parameter carries a tangent (nullptr: zero tangent).
+template <typename T>
+struct Params<Dual<T>> {
+    std::vector<const T *> data;
+    std::vector<int64_t> numel;
+    std::vector<const T *> tangent;
+
+    Dual<T> spectrum(int p) const {
+        RGB<T> v = Params<RGB<T>>::value_of(data[p], numel[p]);
+        if (!tangent[p]) return Dual<T>(v);
+        return Dual<T>(v, Params<RGB<T>>::value_of(tangent[p], numel[p]));
+    }
+    Dual<T> real(int p) const { return spectrum(p); }
+    Dual<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
+        RGB<T> v = Params<RGB<T>>::gather(data[p], channels, index, weight, n);
+        if (!tangent[p]) return Dual<T>(v);
+        return Dual<T>(v, Params<RGB<T>>::gather(tangent[p], channels, index, weight, n));
+    }
+    float mean(int p) const { return detail::mean_of(data[p], numel[p]); }
+    bool differentiable(int p) const { return tangent[p] != nullptr; }
 };
 
 }  // namespace rbpt

@@ -30,14 +30,38 @@ const RoughPlasticTables *cached_tables(MicrofacetType type, float alpha, float 
 
 }  // namespace
 
+/// d(tables)/d(alpha) by central differences of the (smooth) quadratures, cached too.
+static const RoughPlasticTables *cached_derivative(MicrofacetType type, float alpha, float eta) {
+    static std::mutex mutex;
+    static std::map<std::tuple<int, float, float>, std::unique_ptr<RoughPlasticTables>> cache;
+    auto key = std::make_tuple(int(type), alpha, eta);
+    {
+        std::lock_guard<std::mutex> lock(mutex);
+        auto it = cache.find(key);
+        if (it != cache.end()) return it->second.get();
+    }
+    float h = 1e-3f * alpha;
+    const RoughPlasticTables *hi = cached_tables(type, alpha + h, eta);
+    const RoughPlasticTables *lo = cached_tables(type, alpha - h, eta);
+    auto d = std::make_unique<RoughPlasticTables>(*hi);
+    float inv = 1.f / (float(double(alpha + h) - double(alpha - h)));
+    for (int i = 0; i < RoughPlasticTables::Resolution; ++i)
+        d->external_transmittance[i] = (hi->external_transmittance[i] - lo->external_transmittance[i]) * inv;
+    d->internal_reflectance = (hi->internal_reflectance - lo->internal_reflectance) * inv;
+    std::lock_guard<std::mutex> lock(mutex);
+    return cache.emplace(key, std::move(d)).first->second.get();
+}
+
 std::vector<BSDFState> prepare_bsdfs(const Scene &scene, const std::vector<float> &alphas,
                                      const std::vector<float> &diffuse_means,
-                                     const std::vector<float> &specular_means) {
+                                     const std::vector<float> &specular_means,
+                                     const std::vector<bool> &alpha_derivatives) {
     std::vector<BSDFState> state(scene.bsdfs.size());
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
         const BSDF &b = scene.bsdfs[i];
         if (b.type != BSDFType::RoughPlastic) continue;
         state[i].tables = cached_tables(b.distribution, alphas[i], b.eta);
+        if (alpha_derivatives[i]) state[i].dtables = cached_derivative(b.distribution, alphas[i], b.eta);
         float d = diffuse_means[i], s = specular_means[i];
         state[i].specular_sampling_weight = d + s > 0.f ? s / (d + s) : 0.5f;
     }

@@ -57,7 +57,8 @@ public:
 /// tables, which are cached process-wide by (distribution, alpha, eta)).
 std::vector<BSDFState> prepare_bsdfs(const Scene &scene, const std::vector<float> &alphas,
                                      const std::vector<float> &diffuse_means,
-                                     const std::vector<float> &specular_means);
+                                     const std::vector<float> &specular_means,
+                                     const std::vector<bool> &alpha_derivatives);
 
 /// Everything a render reads: the scene and the parameter values of number type S.
 template <typename S>
@@ -71,14 +72,16 @@ struct RenderContext {
         bitmaps = scene.bitmaps.data();
         size_t n = scene.bsdfs.size();
         std::vector<float> alphas(n, 0.1f), dmeans(n, 0.5f), smeans(n, 1.f);
+        std::vector<bool> derivatives(n, false);
         for (size_t i = 0; i < n; ++i) {
             const BSDF &b = scene.bsdfs[i];
             if (b.type != BSDFType::RoughPlastic) continue;
             alphas[i] = detach_real(params.real(b.alpha));
             dmeans[i] = texture_mean(b.reflectance);
             smeans[i] = texture_mean(b.specular_reflectance);
+            derivatives[i] = params.differentiable(b.alpha);
         }
-        bsdf_state = prepare_bsdfs(scene, alphas, dmeans, smeans);
+        bsdf_state = prepare_bsdfs(scene, alphas, dmeans, smeans, derivatives);
     }
 
 private:

@@ -113,7 +113,7 @@ def test08_crop_window_renders_the_same_pixels(shared):
 
 def test09_bad_arguments_raise():
     scene = furnace_scene(0.5, res=4)
-    with pytest.raises(ValueError, match="spp must be positive"):
+    with pytest.raises(ValueError, match="spp must be a positive int"):
         tr.render(scene, spp=0)
     with pytest.raises(ValueError, match="seed"):
         tr.render(scene, spp=1, seed=-1)

@@ -69,6 +69,17 @@ def test04_params_are_live_and_checked(shared):
     assert scene.params["red.reflectance.value"][1] == pytest.approx(0.2)
 
 
+def test04b_geometry_and_iors_are_read_only(shared):
+    scene = tr.load_file(shared / "cbox/cbox.xml", res=8)
+    assert scene.params["redwall.vertex_positions"].shape == (12,)
+    torch.testing.assert_close(scene.params["glass.eta"], torch.tensor([1.5046 / 1.000277]))
+    with pytest.raises(ValueError, match="'glass.eta' cannot be changed"):
+        scene.params["glass.eta"] = torch.tensor([1.3])
+    scene.params["redwall.vertex_positions"].add_(1.0)
+    with pytest.raises(ValueError, match="'redwall.vertex_positions' was edited.*geometry is fixed"):
+        tr.render(scene, spp=1)
+
+
 def test05_float64_scenes_render_float64(shared):
     scene = tr.load_file(shared / "cbox/cbox.xml", res=8, dtype=torch.float64)
     image = tr.render(scene, spp=2)
@@ -95,7 +106,7 @@ def _dict_box(**overrides):
 
 def test06_dict_format_with_transforms_and_matrices():
     scene = tr.load_dict(_dict_box())
-    assert set(scene.params) == {"red.reflectance.value", "light.intensity.value"}
+    assert set(scene.params) == {"red.reflectance.value", "light.intensity.value", "wall.to_world"}
     image = tr.render(scene, spp=4)
     assert image.shape == (8, 12, 3) and float(image[..., 0].mean()) > 0
     # The same scene with a plain 4x4 matrix for to_world.

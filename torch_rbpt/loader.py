@@ -69,6 +69,10 @@ IOR = {
 }
 
 
+GEOMETRY = ("geometry is fixed at load: torch_rbpt differentiates materials and emission, not "
+            "shapes (visibility gradients are out of scope)")
+
+
 def _where(node) -> str:
     return node.get("__where__", "<dict>") if isinstance(node, dict) else "<dict>"
 
@@ -83,6 +87,7 @@ class _Builder:
         self.dtype = dtype
         self.native = _C.Scene()
         self.params: dict[str, torch.Tensor] = {}
+        self.fixed: dict[str, tuple] = {}  # key -> (tensor, why it cannot be differentiated)
         self.objects = {}  # id -> top-level plugin dict
         self.built_bsdfs: dict[int, int] = {}  # id(node) -> native BSDF index
         self.built_textures: dict[int, tuple] = {}
@@ -153,6 +158,10 @@ class _Builder:
             raise SceneError(f"two parameters share the key '{key}': give the objects distinct ids")
         self.params[key] = t
         return self.native.add_param(key, t.numel())
+
+    def add_fixed(self, key: str, value, why: str) -> None:
+        """A Mitsuba parameter we expose read-only: editing or differentiating it is an error."""
+        self.fixed[key] = (torch.as_tensor(np.asarray(value, dtype=np.float64)).to(self.dtype), why)
 
     def number(self, node, name: str, default=None, kind=float):
         value = node.get(name, default)
@@ -319,6 +328,9 @@ class _Builder:
             nonlinear = self.number(node, "nonlinear", False, bool)
         if alpha >= 0 and not float(list(self.params.values())[alpha][0]) > 0:
             self.fail(node, f"{t}: alpha must be positive")
+        if t in ("dielectric", "roughplastic"):
+            self.add_fixed(f"{key}.eta", [eta], f"the relative index of refraction (int_ior / ext_ior) "
+                                                f"of a {t} is not differentiable and is fixed at load")
         index = self.native.add_bsdf(t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
         self.built_bsdfs[id(node)] = index
         return index
@@ -348,6 +360,7 @@ class _Builder:
                 self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
             frame = (axes / scales).T.tolist()
             shape = self.native.add_sphere(m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
+            self.add_fixed(f"{key}.to_world", m, GEOMETRY)
         else:
             if t in ("obj", "ply"):
                 if "filename" not in node:
@@ -363,6 +376,10 @@ class _Builder:
             else:
                 mesh = meshes.rectangle() if t == "rectangle" else meshes.cube()
             mesh = mesh.transformed(to_world)
+            if t == "rectangle":
+                self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
+            else:
+                self.add_fixed(f"{key}.vertex_positions", mesh.positions.reshape(-1), GEOMETRY)
             shape = self.native.add_mesh(
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
@@ -518,7 +535,7 @@ class _Builder:
         if sensor is None:
             sensor = Sensor()
         self.native.build()
-        return Scene(self.native, self.params, sensor, integrator, source)
+        return Scene(self.native, self.params, sensor, integrator, source, self.fixed)
 
 
 def load_dict(scene: dict, dtype: torch.dtype = torch.float32, base_dir=None) -> Scene:

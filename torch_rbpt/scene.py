@@ -20,8 +20,11 @@ class SceneParams(MutableMapping):
     tensor checks its shape, dtype and device; keys cannot be added or removed.
     """
 
-    def __init__(self, tensors: dict[str, torch.Tensor]):
+    def __init__(self, tensors: dict[str, torch.Tensor], fixed: dict[str, str] | None = None):
         self._tensors = tensors
+        # Keys Mitsuba exposes that we cannot differentiate or edit (geometry, IORs), with why.
+        self._fixed = fixed or {}
+        self._fixed_versions = {k: tensors[k]._version for k in self._fixed}
 
     def __getitem__(self, key: str) -> torch.Tensor:
         try:
@@ -31,6 +34,8 @@ class SceneParams(MutableMapping):
 
     def __setitem__(self, key: str, value) -> None:
         old = self[key]
+        if key in self._fixed:
+            raise ValueError(f"scene parameter '{key}' cannot be changed: {self._fixed[key]}")
         if not isinstance(value, torch.Tensor):
             raise TypeError(f"scene parameter '{key}' must be a torch.Tensor, got {type(value).__name__}")
         if value.shape != old.shape:
@@ -127,10 +132,12 @@ class Scene:
     """A loaded scene. Create with `torch_rbpt.load_file` or `torch_rbpt.load_dict`."""
 
     def __init__(self, native: "_C.Scene", params: dict[str, torch.Tensor], sensor: Sensor,
-                 integrator: Integrator, source: str = "<dict>"):
+                 integrator: Integrator, source: str = "<dict>", fixed: dict | None = None):
         self._native = native
-        self.params = SceneParams(params)
         self._keys = list(params)  # order of the C++ parameter registry
+        fixed = fixed or {}
+        self.params = SceneParams({**params, **{k: v for k, (v, _) in fixed.items()}},
+                                  {k: why for k, (_, why) in fixed.items()})
         self.sensor = sensor
         self.integrator = integrator
         self.source = source
@@ -138,15 +145,48 @@ class Scene:
     @property
     def dtype(self) -> torch.dtype:
         """dtype of the parameters, and so of rendered images."""
-        return next(iter(self.params.values())).dtype if len(self.params) else torch.float32
+        return self.params[self._keys[0]].dtype if self._keys else torch.float32
 
     def to(self, dtype: torch.dtype) -> "Scene":
         """Convert all parameters to float32 or float64 (in place); returns the scene."""
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"scene dtype must be torch.float32 or torch.float64, got {dtype}")
-        for k in self._keys:
-            self.params._tensors[k] = self.params._tensors[k].detach().to(dtype)
+        p = self.params
+        for k in list(p._tensors):
+            p._tensors[k] = p._tensors[k].detach().to(dtype)
+        p._fixed_versions = {k: p._tensors[k]._version for k in p._fixed}
         return self
+
+
+    def differentiable_inputs(self) -> list[torch.Tensor]:
+        """The parameter tensors in registry order (what render() differentiates), after
+        checking that no fixed parameter (geometry, IOR) was edited or marked for gradients."""
+        p = self.params
+        for k, why in p._fixed.items():
+            t = p._tensors[k]
+            if t.requires_grad:
+                raise ValueError(f"scene parameter '{k}' cannot be differentiated: {why}")
+            if t._version != p._fixed_versions[k]:
+                raise ValueError(f"scene parameter '{k}' was edited, which is not supported: {why}")
+        return [p._tensors[k] for k in self._keys]
+
+    def tangent_list(self, tangents: dict) -> list:
+        """Tangents in registry order for render_forward (None where absent), checked."""
+        out = []
+        for k in tangents:
+            if k not in self.params:
+                raise KeyError(f"no scene parameter '{k}' (available: {', '.join(self._keys)})")
+            if k in self.params._fixed:
+                raise ValueError(f"scene parameter '{k}' cannot be differentiated: {self.params._fixed[k]}")
+        for k in self._keys:
+            t = tangents.get(k)
+            if t is not None:
+                t = torch.as_tensor(t, dtype=self.dtype)
+                if t.shape != self.params[k].shape:
+                    raise ValueError(f"tangent of '{k}' must have shape {tuple(self.params[k].shape)}, got {tuple(t.shape)}")
+                t = t.contiguous()
+            out.append(t)
+        return out
 
     def param_list(self) -> list[torch.Tensor]:
         """Parameter tensors in registry order (detached, contiguous) for the C++ core."""
