@@ -11,6 +11,14 @@ using namespace rbpt;
 
 namespace {
 
+/// Tensors this file allocates are plain ones even when called inside torch.func transforms
+/// (whose dispatch layer would otherwise wrap them into storage-less tensors).
+struct PlainTensors {
+    c10::impl::ExcludeDispatchKeyGuard guard{c10::DispatchKeySet(
+        {c10::DispatchKey::FuncTorchDynamicLayerFrontMode,
+         c10::DispatchKey::FuncTorchDynamicLayerBackMode})};
+};
+
 [[noreturn]] void fail(const std::string &message) { throw py::value_error(message); }
 
 template <typename T>
@@ -159,6 +167,7 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
 py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dict &integrator,
                      const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
                      int row_begin, int row_end) {
+    PlainTensors plain;
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
     Camera cam = make_camera(camera);
     IntegratorSettings cfg = make_integrator(integrator);
@@ -213,6 +222,7 @@ std::vector<std::optional<torch::Tensor>> render_bwd_entry(
     const Scene &scene, const py::dict &camera, const py::dict &integrator,
     const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
     torch::Tensor grad_image, int spp, uint64_t seed) {
+    PlainTensors plain;
     Camera cam = make_camera(camera);
     IntegratorSettings cfg = make_integrator(integrator);
     RenderRequest req = whole_image(cam, spp, seed);
@@ -266,6 +276,7 @@ py::tuple render_jvp_entry(const Scene &scene, const py::dict &camera, const py:
                            const std::vector<torch::Tensor> &params,
                            const std::vector<std::optional<torch::Tensor>> &tangents, int spp,
                            uint64_t seed) {
+    PlainTensors plain;
     Camera cam = make_camera(camera);
     IntegratorSettings cfg = make_integrator(integrator);
     RenderRequest req = whole_image(cam, spp, seed);

@@ -125,7 +125,7 @@ struct ConductorBSDF {
 };
 
 /// Rough mirror: f = F D(h) G(wi, wo, h) / (4 cos_i cos_o), F = specular_reflectance.
-/// Samples visible normals; weight = F G1(wo, m).
+/// Samples visible normals (weight = eval / pdf, which equals F G1(wo, m)).
 struct RoughConductorBSDF {
     template <typename S, typename Ctx>
     static S eval(const BSDF &b, const Ctx &ctx, const SurfaceInteraction &si, const Vec3 &wi,
@@ -159,9 +159,9 @@ struct RoughConductorBSDF {
         if (bs.wo.z <= 0.f) return std::nullopt;
         bs.pdf = pdf(b, ctx, wi, bs.wo);
         if (!(bs.pdf > 0.f)) return std::nullopt;
-        real_t<S> alpha = ctx.params.real(b.alpha);
-        bs.weight = detail::texture<S>(b.specular_reflectance, ctx, si) *
-                    smith_G1(b.distribution, alpha, bs.wo, m);
+        // eval / pdf with the pdf detached (not the simplified F G1(wo)): sampling carries
+        // no derivative, so the weight's derivative must be d(eval)/d(theta) / pdf.
+        bs.weight = eval<S>(b, ctx, si, wi, bs.wo) / real_t<S>(bs.pdf);
         return bs;
     }
 };

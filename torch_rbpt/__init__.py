@@ -9,10 +9,10 @@ from . import _C  # noqa: F401
 from .images import read_image, write_image
 from .loader import load_dict, load_file
 from .mitsuba_xml import SceneError
-from .render import render
+from .render import render, render_forward
 from .scene import Scene, SceneParams
 from .transform import Transform
 
-__all__ = ["load_file", "load_dict", "render", "read_image", "write_image", "Scene",
+__all__ = ["load_file", "load_dict", "render", "render_forward", "read_image", "write_image", "Scene",
            "SceneParams", "SceneError", "Transform"]
 __version__ = "0.1.0"

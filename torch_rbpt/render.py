@@ -10,6 +10,15 @@ from .scene import Scene
 _SEED_GRAD_MIX = 0x5DEECE66D  # nonzero: a derived seed_grad never equals seed
 
 
+def _plain(x: torch.Tensor) -> torch.Tensor:
+    """The underlying tensor of a torch.func (functorch) wrapper, which has no storage of its
+    own for the C++ core to read; plain tensors pass through."""
+    from torch._C._functorch import get_unwrapped, is_functorch_wrapped_tensor
+    while is_functorch_wrapped_tensor(x):
+        x = get_unwrapped(x)
+    return x
+
+
 def default_seed_grad(seed: int) -> int:
     """The backward pass's default seed: derived from `seed`, never equal to it."""
     return seed ^ _SEED_GRAD_MIX
@@ -44,7 +53,9 @@ class _Render(torch.autograd.Function):
         ctx.scene, ctx.camera, ctx.integrator = scene, camera, integrator
         ctx.spp, ctx.seed, ctx.spp_grad, ctx.seed_grad = spp, seed, spp_grad, seed_grad
         ctx.save_for_backward(*params)
-        ctx.save_for_forward(*params)
+        # For jvp: detached views of the values (no copy). Saved tensors come back wrapped
+        # under torch.func transforms, where the C++ core needs plain storage.
+        ctx.values = [p.detach() for p in params]
         ctx.set_materialize_grads(False)
 
     @staticmethod
@@ -60,9 +71,8 @@ class _Render(torch.autograd.Function):
 
     @staticmethod
     def jvp(ctx, *tangents):
-        params = ctx.saved_tensors
-        t = [None if x is None else x.detach() for x in tangents[7:]]
-        values = [p.detach().contiguous() for p in params]
+        t = [None if x is None else _plain(x.detach()).contiguous() for x in tangents[7:]]
+        values = [_plain(p).contiguous() for p in ctx.values]
         _, derivative = _C.render_jvp(ctx.scene._native, ctx.camera, ctx.integrator, values, t,
                                       ctx.spp, ctx.seed)
         return derivative
