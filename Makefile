@@ -15,9 +15,9 @@ SOURCES = $(wildcard csrc/*.h csrc/*.cpp) setup.py
 
 install: .installed
 
+# The main job: recover the red wall's reflectance of the bundled Cornell box from an image.
 demo: .installed
-	$(PYTHON) -m torch_rbpt render torch_rbpt/scenes/cornell_box.xml -o out/cornell_box.exr --spp 256 -D res=256
-	@echo "wrote out/cornell_box.exr and out/cornell_box.png"
+	$(PYTHON) examples/fit_material.py
 
 test: .installed
 	$(PYTHON) -m pytest -q -m "not slow" tests
