@@ -52,11 +52,10 @@ void for_each_pixel_dynamic(int64_t n_pixels, const WorkerPool &pool, std::atomi
     });
 }
 
-}  // namespace
-
-template <typename S>
-void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
-                const RenderRequest &req, real_t<S> *out, const WorkerPool &pool) {
+/// Average the finite samples (`keep`) of every requested pixel; store(i, mean) writes pixel i.
+template <typename S, typename Keep, typename Store>
+void average_pixels(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
+                    const RenderRequest &req, const WorkerPool &pool, Keep keep, Store store) {
     using T = real_t<S>;
     PixelIndexer at{camera, req, camera.crop_width};
     int64_t n_pixels = int64_t(row_end_of(camera, req) - req.row_begin) * at.width;
@@ -70,37 +69,40 @@ void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const Integra
         for (int s = 0; s < req.spp; ++s) {
             S L = trace_sample(ctx, camera, cfg, req.seed, px, py, key, s);
             // Drop non-finite samples rather than poisoning the pixel.
-            if (SpectrumTraits<S>::is_finite(L)) sum += L;
+            if (keep(L)) sum += L;
         }
-        for (int c = 0; c < 3; ++c) out[3 * i + c] = sum[c] * inv_spp;
+        store(i, sum * inv_spp);
     });
     if (req.rays) *req.rays = rays;
+}
+
+}  // namespace
+
+template <typename S>
+void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
+                const RenderRequest &req, real_t<S> *out, const WorkerPool &pool) {
+    average_pixels(
+        ctx, camera, cfg, req, pool, [](const S &L) { return SpectrumTraits<S>::is_finite(L); },
+        [&](int64_t i, const S &mean) {
+            for (int c = 0; c < 3; ++c) out[3 * i + c] = mean[c];
+        });
 }
 
 template <typename T>
 void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, T *out, T *out_tangent,
                 const WorkerPool &pool) {
-    PixelIndexer at{camera, req, camera.crop_width};
-    int64_t n_pixels = int64_t(row_end_of(camera, req) - req.row_begin) * at.width;
-    T inv_spp = T(1) / T(req.spp);
-    std::atomic<uint64_t> rays{0};
-    for_each_pixel_dynamic(n_pixels, pool, rays, [&](int64_t i) {
-        int px, py;
-        uint64_t key;
-        at.locate(i, &px, &py, &key);
-        Dual<T> sum(T(0));
-        for (int s = 0; s < req.spp; ++s) {
-            Dual<T> L = trace_sample(ctx, camera, cfg, req.seed, px, py, key, s);
-            if (SpectrumTraits<Dual<T>>::is_finite(L) && SpectrumTraits<RGB<T>>::is_finite(L.d))
-                sum += L;
-        }
-        for (int c = 0; c < 3; ++c) {
-            out[3 * i + c] = sum.v[c] * inv_spp;
-            out_tangent[3 * i + c] = sum.d[c] * inv_spp;
-        }
-    });
-    if (req.rays) *req.rays = rays;
+    average_pixels(
+        ctx, camera, cfg, req, pool,
+        [](const Dual<T> &L) {
+            return SpectrumTraits<Dual<T>>::is_finite(L) && SpectrumTraits<RGB<T>>::is_finite(L.d);
+        },
+        [&](int64_t i, const Dual<T> &mean) {
+            for (int c = 0; c < 3; ++c) {
+                out[3 * i + c] = mean.v[c];
+                out_tangent[3 * i + c] = mean.d[c];
+            }
+        });
 }
 
 template <typename T>
