@@ -133,11 +133,19 @@ Params<RGB<T>> bind_params(const Scene &scene, const std::vector<torch::Tensor> 
     return p;
 }
 
-/// torch's intra-op pool: runs a job once per thread (torch.set_num_threads is honoured).
-WorkerPool torch_pool() {
+/// Below this many paths a render runs on the calling thread alone: waking the pool costs
+/// milliseconds on a busy machine, more than tracing the paths.
+constexpr int64_t MinPathsForThreads = 4096;
+
+/// torch's intra-op pool (torch.set_num_threads is honoured): runs a job once per thread.
+WorkerPool torch_pool(int64_t paths) {
     WorkerPool pool;
-    pool.workers = at::get_num_threads();
+    pool.workers = paths < MinPathsForThreads ? 1 : at::get_num_threads();
     int n = pool.workers;
+    if (n == 1) {
+        pool.run = [](const std::function<void()> &job) { job(); };
+        return pool;
+    }
     pool.run = [n](const std::function<void()> &job) {
         at::parallel_for(0, n, 1, [&](int64_t begin, int64_t end) {
             for (int64_t i = begin; i < end; ++i) job();
@@ -158,7 +166,8 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     T *data = out.data_ptr<T>();
     {
         py::gil_scoped_release release;
-        render_fwd(ctx, cam, cfg, req, data, torch_pool());
+        int64_t paths = int64_t(req.row_end - req.row_begin) * cam.crop_width * req.spp;
+        render_fwd(ctx, cam, cfg, req, data, torch_pool(paths));
     }
     return out;
 }
@@ -209,9 +218,10 @@ std::vector<std::optional<torch::Tensor>> render_bwd_typed(
         grads[p] = out[p]->data_ptr<T>();
     }
     const T *dL = adjoint.data_ptr<T>();
+    int64_t paths = adjoint.ne(0).any(-1).sum().item<int64_t>() * req.spp;
     {
         py::gil_scoped_release release;
-        render_bwd(scene, values, cam, cfg, req, dL, grads, torch_pool());
+        render_bwd(scene, values, cam, cfg, req, dL, grads, torch_pool(paths));
     }
     return out;
 }
@@ -266,7 +276,7 @@ py::tuple render_jvp_typed(const Scene &scene, const Camera &cam, const Integrat
     T *pi = image.data_ptr<T>(), *pt = tangent.data_ptr<T>();
     {
         py::gil_scoped_release release;
-        render_jvp(ctx, cam, cfg, req, pi, pt, torch_pool());
+        render_jvp(ctx, cam, cfg, req, pi, pt, torch_pool(int64_t(cam.crop_height) * cam.crop_width * req.spp));
     }
     return py::make_tuple(image, tangent);
 }
