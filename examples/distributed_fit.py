@@ -33,6 +33,8 @@ from tqdm import tqdm
 
 import torch_rbpt as tr
 
+import plots  # examples/plots.py: figures shared by the examples
+
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "torch_rbpt" / "scenes" / "cornell_box.xml"
 KEY = "red.reflectance.value"
@@ -74,31 +76,11 @@ def init_distributed() -> tuple[int, int, bool]:
 
 
 def save_figures(out: Path, views: dict, losses: list, errors: list) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    columns = ("reference", "initial", "final")
-    fig, axes = plt.subplots(len(views), 3, figsize=(9, 3 * len(views)), squeeze=False)
-    for row, (v, images) in enumerate(sorted(views.items())):
-        for col, name in enumerate(columns):
-            ax = axes[row, col]
-            ax.imshow(tr.images.linear_to_srgb(images[name].clamp(0, 1)).numpy())
-            ax.set_title(f"view {v}: {name}")
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "comparison.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    ax[0].semilogy(losses)
-    ax[0].set(xlabel="iteration", ylabel="L2 image loss (mean over views)", title="loss")
-    ax[1].semilogy(errors)
-    ax[1].set(xlabel="iteration", ylabel="RMS error", title=f"{KEY} error")
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=100)
-    plt.close(fig)
-
+    rows = [{f"view {v}: {name}": images[name] for name in ("reference", "initial", "final")}
+            for v, images in sorted(views.items())]
+    plots.image_grid(out / "comparison.png", rows, size=3)
+    plots.convergence(out / "convergence.png", losses, {"RMS error": errors}, "RMS error", f"{KEY} error",
+                      loss_label="L2 image loss (mean over views)")
 
 def main(argv=None) -> float:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -47,6 +47,8 @@ from tqdm import tqdm
 
 import torch_rbpt as tr
 
+import plots  # examples/plots.py: figures shared by the examples
+
 ROOT = Path(__file__).resolve().parents[1]
 ALPHA = "ball.bsdf.alpha.value"
 SPECULAR = "ball.bsdf.specular_reflectance.value"
@@ -116,30 +118,9 @@ def relative_errors(values: dict) -> dict[str, float]:
 
 
 def save_figures(out: Path, images: dict, losses: list, errors: list[dict]) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(images), figsize=(4 * len(images), 3.4))
-    for ax, (name, image) in zip(axes, images.items()):
-        ax.imshow(tr.images.linear_to_srgb(image.clamp(0, 1)).numpy())
-        ax.set_title(name)
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "comparison.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    ax[0].semilogy(losses)
-    ax[0].set(xlabel="iteration", ylabel="L2 image loss", title="loss")
-    for key, name in NAMES.items():
-        ax[1].semilogy([e[key] for e in errors], label=name)
-    ax[1].set(xlabel="iteration", ylabel="|fitted - true| / |true|", title="relative parameter errors")
-    ax[1].legend()
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=100)
-    plt.close(fig)
-
+    plots.image_grid(out / "comparison.png", [images], size=4)
+    plots.convergence(out / "convergence.png", losses, {name: [e[key] for e in errors] for key, name in NAMES.items()},
+                      "|fitted - true| / |true|", "relative parameter errors")
 
 def main(argv=None) -> dict[str, float]:
     """Runs the fit; returns the final relative error of each parameter (keyed by scene key)."""

@@ -14,13 +14,14 @@ and the parameter error per iteration.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import torch
 from tqdm import tqdm
 
 import torch_rbpt as tr
+
+import plots  # examples/plots.py: figures shared by the examples
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "torch_rbpt" / "scenes" / "cornell_box.xml"
@@ -35,28 +36,8 @@ SETTINGS = {
 
 
 def save_figures(out: Path, images: dict, losses: list, errors: list) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(images), figsize=(4 * len(images), 4))
-    for ax, (name, image) in zip(axes, images.items()):
-        ax.imshow(tr.images.linear_to_srgb(image.clamp(0, 1)).numpy())
-        ax.set_title(name)
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "comparison.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    ax[0].semilogy(losses)
-    ax[0].set(xlabel="iteration", ylabel="L2 image loss", title="loss")
-    ax[1].semilogy(errors)
-    ax[1].set(xlabel="iteration", ylabel="RMS error", title=f"{KEY} error")
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=100)
-    plt.close(fig)
-
+    plots.image_grid(out / "comparison.png", [images], size=4)
+    plots.convergence(out / "convergence.png", losses, {"RMS error": errors}, "RMS error", f"{KEY} error")
 
 def main(argv=None) -> float:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

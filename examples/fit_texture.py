@@ -44,6 +44,8 @@ from tqdm import tqdm
 
 import torch_rbpt as tr
 
+import plots  # examples/plots.py: figures shared by the examples
+
 ROOT = Path(__file__).resolve().parents[1]
 KEY = "floor.bsdf.reflectance.data"
 START = 0.5  # flat grey start texture
@@ -114,19 +116,13 @@ def build_scene(texture_path: Path, res: int):
     })
 
 
-def srgb(image: torch.Tensor) -> np.ndarray:
-    return tr.images.linear_to_srgb(image.detach().clamp(0, 1)).numpy()
-
-
 def save_figures(out: Path, textures: dict, error: np.ndarray, views_count: np.ndarray, views: list,
                  losses: list, rmse: list, rmse_visible: list) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(textures) + 2, figsize=(3.2 * (len(textures) + 2), 3.4))
     for ax, (name, tex) in zip(axes, textures.items()):
-        ax.imshow(srgb(tex), interpolation="nearest", origin="lower")  # as seen from above
+        ax.imshow(plots.srgb(tex), interpolation="nearest", origin="lower")  # as seen from above
         ax.set_title(name)
     im = axes[-2].imshow(error, cmap="magma", vmin=0, interpolation="nearest", origin="lower")
     axes[-2].set_title("|result - target| (RMS over RGB)")
@@ -141,28 +137,10 @@ def save_figures(out: Path, textures: dict, error: np.ndarray, views_count: np.n
     fig.savefig(out / "textures.png", dpi=100)
     plt.close(fig)
 
-    fig, axes = plt.subplots(2, len(views), figsize=(3.2 * len(views), 6.6), squeeze=False)
-    for i, (ref, fin) in enumerate(views):
-        axes[0, i].imshow(srgb(ref))
-        axes[0, i].set_title(f"view {i}: reference")
-        axes[1, i].imshow(srgb(fin))
-        axes[1, i].set_title(f"view {i}: final")
-    for ax in axes.flat:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "views.png", dpi=100)
-    plt.close(fig)
-
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    ax[0].semilogy(losses)
-    ax[0].set(xlabel="iteration", ylabel="L2 image loss (sum over views)", title="loss")
-    ax[1].semilogy(rmse, label="all texels")
-    ax[1].semilogy(rmse_visible, label="visible texels")
-    ax[1].set(xlabel="iteration", ylabel="texture RMSE", title="texture error")
-    ax[1].legend()
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=100)
-    plt.close(fig)
+    plots.image_grid(out / "views.png", [{f"view {i}: reference": ref for i, (ref, _) in enumerate(views)},
+                                         {f"view {i}: final": fin for i, (_, fin) in enumerate(views)}])
+    plots.convergence(out / "convergence.png", losses, {"all texels": rmse, "visible texels": rmse_visible},
+                      "texture RMSE", "texture error", loss_label="L2 image loss (sum over views)")
 
 
 def rms(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:

@@ -1,4 +1,6 @@
 """Shared fixtures: paths to the public scenes and small scenes built in code."""
+import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -9,6 +11,17 @@ import torch_rbpt as tr
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "scenes"
 REFERENCES = Path(__file__).resolve().parent / "references"
+
+
+def load_example(name: str):
+    """Import examples/<name>.py as a module (its folder on sys.path for shared helpers)."""
+    folder = ROOT / "examples"
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def bsdf_scene(bsdf: dict, dtype=torch.float32):

@@ -1,7 +1,6 @@
 """Ray intersection (csrc/bvh.cpp, shapes.h): the BVH agrees with brute force, closed meshes
 are watertight at their shared edges and vertices, and spheres are hit where they are."""
 import numpy as np
-import pytest
 import torch
 
 import torch_rbpt as tr

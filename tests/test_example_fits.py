@@ -1,21 +1,15 @@
 """The fitting examples fit_texture.py and fit_glossy.py run in their smoke settings, leave
 their outputs, and move the fitted parameters towards the truth."""
-import importlib.util
 
 import torch
 
-from conftest import ROOT
+from conftest import load_example
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_fit_texture_smoke(tmp_path):
-    fit = _load("fit_texture")
+    fit = load_example("fit_texture")
     rmse_visible = fit.main(["--smoke", "--out", str(tmp_path)])
     for name in ("target_texture", "initial_texture", "final_texture"):
         assert (tmp_path / f"{name}.exr").exists() and (tmp_path / f"{name}.png").exists()
@@ -33,7 +27,7 @@ def test_fit_texture_smoke(tmp_path):
 
 
 def test_fit_glossy_smoke(tmp_path):
-    fit = _load("fit_glossy")
+    fit = load_example("fit_glossy")
     final = fit.main(["--smoke", "--out", str(tmp_path)])
     for name in ("reference", "initial", "final"):
         assert (tmp_path / f"{name}.exr").exists() and (tmp_path / f"{name}.png").exists()

@@ -1,21 +1,15 @@
 """The gradient examples run in their smoke settings: examples/gradient_image.py (reverse mode
 against dual numbers, per pixel) and examples/distributed_fit.py (one process, and two
 processes launched by torch.distributed.run on loopback)."""
-import importlib.util
 import os
 import re
 import socket
 import subprocess
 import sys
 
-from conftest import ROOT
+from conftest import ROOT, load_example
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _free_port() -> int:
@@ -32,7 +26,7 @@ def _check_fit_outputs(out, views=4):
 
 
 def test01_gradient_image_smoke(tmp_path):
-    result = _load("gradient_image").main(["--smoke", "--out", str(tmp_path)])
+    result = load_example("gradient_image").main(["--smoke", "--out", str(tmp_path)])
     for name in ("scene", "reverse", "dual", "difference"):
         assert (tmp_path / f"{name}.exr").exists() and (tmp_path / f"{name}.png").exists()
     assert (tmp_path / "gradient_image.png").exists()
@@ -44,7 +38,7 @@ def test01_gradient_image_smoke(tmp_path):
 
 
 def test02_distributed_fit_one_process(tmp_path):
-    rms = _load("distributed_fit").main(["--smoke", "--out", str(tmp_path)])
+    rms = load_example("distributed_fit").main(["--smoke", "--out", str(tmp_path)])
     _check_fit_outputs(tmp_path)
     # Start (0.01, 0.2, 0.9) is 0.55 RMS away from the truth: the fit must move towards it.
     assert rms < 0.3
@@ -62,5 +56,5 @@ def test03_distributed_fit_two_processes(tmp_path):
     rms = float(re.search(r"RMS reflectance error: ([0-9.]+)", run.stdout).group(1))
     assert rms < 0.3
     # Seeds belong to views, not ranks: one process follows the same path up to rounding.
-    alone = _load("distributed_fit").main(["--smoke", "--out", str(tmp_path / "one")])
+    alone = load_example("distributed_fit").main(["--smoke", "--out", str(tmp_path / "one")])
     assert abs(rms - alone) < 1e-3, (rms, alone)

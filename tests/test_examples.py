@@ -1,20 +1,13 @@
 """The examples (examples/*.py) run as-is in their smoke settings and leave their outputs."""
-import importlib.util
-
-import pytest
-
-from conftest import ROOT
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_example
+
+
 
 
 def test_fit_material_smoke(tmp_path):
-    fit = _load("fit_material")
+    fit = load_example("fit_material")
     rms = fit.main(["--smoke", "--out", str(tmp_path)])
     for name in ("reference", "initial", "final"):
         assert (tmp_path / f"{name}.exr").exists() and (tmp_path / f"{name}.png").exists()

@@ -12,7 +12,6 @@ through cbox's glass sphere, veach-mis's tiny lights), so the images are compare
 import json
 
 import pytest
-import torch
 
 import torch_rbpt as tr
 from conftest import REFERENCES, ROOT, SHARED

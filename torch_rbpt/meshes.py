@@ -21,7 +21,7 @@ Conventions (established against Mitsuba 3.9.1, see the notes on each function):
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
