@@ -27,6 +27,7 @@ test-slow: .installed
 
 bench: .installed
 	$(PYTHON) benchmarks/bench_render.py
+	$(PYTHON) benchmarks/bench_gradients.py
 
 clean:
 	rm -rf build *.egg-info torch_rbpt/*.so .installed out
