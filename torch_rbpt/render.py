@@ -2,6 +2,8 @@
 derivative images) and the `_Render` autograd.Function that connects them to torch."""
 from __future__ import annotations
 
+import numbers
+
 import torch
 
 from . import _C
@@ -25,15 +27,15 @@ def default_seed_grad(seed: int) -> int:
 
 
 def _check_seed(name: str, seed) -> int:
-    if not isinstance(seed, int) or seed < 0 or seed >= 2 ** 64:
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed < 2 ** 64:
         raise ValueError(f"{name} must be an int in [0, 2**64), got {seed!r}")
-    return seed
+    return int(seed)
 
 
 def _check_spp(name: str, spp) -> int:
-    if not isinstance(spp, int) or spp <= 0:
+    if isinstance(spp, bool) or not isinstance(spp, numbers.Integral) or spp <= 0:
         raise ValueError(f"{name} must be a positive int, got {spp!r}")
-    return spp
+    return int(spp)
 
 
 class _Render(torch.autograd.Function):
