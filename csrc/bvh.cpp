@@ -1,10 +1,12 @@
 // Layout of the BVH.
 //
 // Build: a binary tree of BinaryNodes with the binned SAH (16 bins, leaves of at most 8
-// primitives), as in pbrt, except that a leaf costs by the packs of four primitives it needs,
-// since four are tested at once (Embree's block size). Collapse: each binary inner node becomes a BVHNode4 whose
-// children are found by repeatedly opening the inner child of largest surface area until
-// there are four (Wald et al. 2008, "Getting rid of packets"). A BVHNode4 (128 bytes) keeps
+// primitives), as in pbrt, except that a leaf costs by the packs of four triangles it needs,
+// since four are tested at once (Embree's block size), plus one pack per sphere.
+//
+// Collapse: each binary inner node becomes a BVHNode4 whose children are found by repeatedly
+// opening the inner child of largest surface area until there are four (Wald et al. 2008,
+// "Getting rid of packets"). A BVHNode4 (128 bytes) keeps
 // the four child boxes in structure-of-arrays form, lo[axis][child] and hi[axis][child], so
 // that one SSE slab test covers all four, and a 32-bit reference per child:
 //   - an inner node: its index in nodes_ (the top bit clear);
@@ -17,7 +19,8 @@
 //
 // Traversal: a stack of (reference, entry distance). An inner node's hit children are visited
 // nearest first, the others pushed farthest first; entries farther than the nearest hit so far
-// are skipped when popped. Any-hit (shadow) queries return at the first hit.
+// are skipped when popped; the hit children are prefetched, as traversal waits on memory.
+// Any-hit (shadow) queries do not order children and return at the first hit.
 
 #include "bvh.h"
 
@@ -60,14 +63,18 @@ struct PrimInfo {
     Bounds bounds;
     Vec3 centroid;
     uint32_t id;
+    bool sphere;
 };
 
 constexpr int Bins = 16;
 constexpr int MaxLeafSize = 8;
-/// Build costs: a binary node (half a 4-wide node) and the test of a pack of four primitives.
-constexpr float TraversalCost = 1.f, PackCost = 2.f;
-/// Packs needed for n primitives.
-inline float packs(uint32_t n) { return float((n + 3) / 4); }
+/// Build costs: a binary node (half a 4-wide node) and the test of a pack of four triangles.
+constexpr float TraversalCost = 1.f, PackCost = 4.f;
+/// Tests for n primitives of which `spheres` are spheres, in packs: triangles go four at a
+/// time, while each sphere costs about a pack (a double precision test of its own).
+inline float pack_tests(uint32_t n, uint32_t spheres) {
+    return float((n - spheres + 3) / 4 + spheres);
+}
 
 struct Builder {
     std::vector<PrimInfo> &prims;
@@ -76,9 +83,11 @@ struct Builder {
     // Build the subtree over prims[begin, end) into nodes[index].
     void build(uint32_t index, uint32_t begin, uint32_t end) {
         Bounds bounds, centroids;
+        uint32_t spheres = 0;
         for (uint32_t i = begin; i < end; ++i) {
             bounds.extend(prims[i].bounds);
             centroids.extend(prims[i].centroid);
+            spheres += prims[i].sphere;
         }
         BinaryNode &node = nodes[index];
         node.lo = bounds.lo;
@@ -97,30 +106,35 @@ struct Builder {
         for (int axis = 0; axis < 3; ++axis) {
             if (extent[axis] <= 0.f) continue;
             Bounds bin_bounds[Bins];
-            uint32_t bin_count[Bins] = {};
+            uint32_t bin_count[Bins] = {}, bin_spheres[Bins] = {};
             float scale = Bins / extent[axis];
             for (uint32_t i = begin; i < end; ++i) {
                 int b = std::min(Bins - 1, int((prims[i].centroid[axis] - centroids.lo[axis]) * scale));
                 bin_bounds[b].extend(prims[i].bounds);
                 bin_count[b]++;
+                bin_spheres[b] += prims[i].sphere;
             }
             float right_area[Bins];
-            uint32_t right_count[Bins];
+            uint32_t right_count[Bins], right_spheres[Bins];
             Bounds acc;
-            uint32_t n = 0;
+            uint32_t n = 0, ns = 0;
             for (int b = Bins - 1; b > 0; --b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
+                ns += bin_spheres[b];
                 right_area[b] = acc.area();
                 right_count[b] = n;
+                right_spheres[b] = ns;
             }
             acc = Bounds();
-            n = 0;
+            n = ns = 0;
             for (int b = 0; b < Bins - 1; ++b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
+                ns += bin_spheres[b];
                 if (n == 0 || right_count[b + 1] == 0) continue;
-                float cost = acc.area() * packs(n) + right_area[b + 1] * packs(right_count[b + 1]);
+                float cost = acc.area() * pack_tests(n, ns) +
+                             right_area[b + 1] * pack_tests(right_count[b + 1], right_spheres[b + 1]);
                 if (cost < best_cost) {
                     best_cost = cost;
                     best_axis = axis;
@@ -133,7 +147,7 @@ struct Builder {
             // All centroids coincide: split the list in the middle.
             return split(index, begin, begin + count / 2, end);
         }
-        float leaf_cost = PackCost * packs(count);
+        float leaf_cost = PackCost * pack_tests(count, spheres);
         float area = std::max(bounds.area(), 1e-30f);
         float split_cost = TraversalCost + PackCost * best_cost / area;
         if (count <= MaxLeafSize && leaf_cost <= split_cost) return make_leaf();
@@ -261,7 +275,7 @@ void BVH::build(const Geometry &geometry) {
             b.extend(s.center - r);
             b.extend(s.center + r);
         }
-        prims[i] = {b, b.center(), i};
+        prims[i] = {b, b.center(), i, !geometry.is_triangle(i)};
     }
     nodes_.clear();
     packs_.clear();
@@ -287,20 +301,12 @@ void BVH::build(const Geometry &geometry) {
     }
 }
 
-void BVH::prefetch(uint32_t ref) const {
-    const char *p = (ref & LeafBit) ? reinterpret_cast<const char *>(&packs_[(ref & ~LeafBit) >> 3])
-                                    : reinterpret_cast<const char *>(&nodes_[ref]);
-    _mm_prefetch(p, _MM_HINT_T0);
-    _mm_prefetch(p + 64, _MM_HINT_T0);
-    _mm_prefetch(p + 128, _MM_HINT_T0);
-}
-
 template <bool AnyHit>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (nodes_.empty()) return false;
     // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
     if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
-    RayPrecomp pc(ray.d);
+    RayPrecomp4 pc(ray);
     __m128 o4[3], inv_d4[3];
     bool neg[3];
     for (int axis = 0; axis < 3; ++axis) {
@@ -336,10 +342,27 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                 alignas(16) float t_entry[4];
                 _mm_store_ps(t_entry, t0);
                 // Start loading the hit children now: traversal is bound by memory latency.
-                for (int m = mask; m; m &= m - 1) prefetch(node.child[__builtin_ctz(m)]);
+                for (int m = mask; m; m &= m - 1) {
+                    uint32_t child = node.child[__builtin_ctz(m)];
+                    const char *p = (child & LeafBit)
+                                        ? reinterpret_cast<const char *>(&packs_[(child & ~LeafBit) >> 3])
+                                        : reinterpret_cast<const char *>(&nodes_[child]);
+                    _mm_prefetch(p, _MM_HINT_T0);
+                    _mm_prefetch(p + 64, _MM_HINT_T0);
+                    _mm_prefetch(p + 128, _MM_HINT_T0);
+                }
                 int c = __builtin_ctz(mask);
                 mask &= mask - 1;
                 if (!mask) {
+                    ref = node.child[c];
+                    continue;
+                }
+                if (AnyHit) {
+                    // Any hit ends the query, so the order does not matter: visit the first.
+                    for (; mask; mask &= mask - 1) {
+                        int other = __builtin_ctz(mask);
+                        stack[sp++] = {node.child[other], t_entry[other]};
+                    }
                     ref = node.child[c];
                     continue;
                 }
@@ -364,8 +387,8 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                 const PrimPack4 &pack = packs_[p];
                 if (pack.triangles) {
                     float t[4], u[4], v[4];
-                    int mask = intersect_triangles4(ray, pc, pack.tris, pack.triangles, ray.tmin,
-                                                    tmax, t, u, v);
+                    int mask = intersect_triangles4(pc, pack.tris, pack.triangles, ray.tmin, tmax,
+                                                    t, u, v);
                     if (mask) {
                         if (AnyHit) return true;
                         int best = __builtin_ctz(mask);

@@ -45,8 +45,6 @@ public:
 private:
     template <bool AnyHit>
     bool traverse(const Ray &ray, Hit *hit) const;
-    /// Start loading the node or first leaf pack of a child reference into the cache.
-    void prefetch(uint32_t ref) const;
 
     const Geometry *geometry_ = nullptr;
     std::vector<BVHNode4> nodes_;

@@ -136,16 +136,33 @@ struct alignas(16) TrianglePack4 {
     float v[3][3][4];
 };
 
+/// Per-ray constants of intersect_triangles4: those of RayPrecomp and the origin, permuted
+/// and splatted over four lanes.
+struct RayPrecomp4 {
+    int kx, ky, kz;
+    __m128 ox, oy, oz, sx, sy, sz;
+    explicit RayPrecomp4(const Ray &ray) {
+        RayPrecomp pc(ray.d);
+        kx = pc.kx;
+        ky = pc.ky;
+        kz = pc.kz;
+        ox = _mm_set1_ps(ray.o[kx]);
+        oy = _mm_set1_ps(ray.o[ky]);
+        oz = _mm_set1_ps(ray.o[kz]);
+        sx = _mm_set1_ps(pc.sx);
+        sy = _mm_set1_ps(pc.sy);
+        sz = _mm_set1_ps(pc.sz);
+    }
+};
+
 /// Four watertight ray-triangle tests at once with SSE: the same operations as
 /// intersect_triangle, lane by lane, so the results are identical (including the double
 /// precision retry when an edge function is zero). Tests the lanes set in `lanes` and returns
 /// the mask of those hit in (tmin, tmax), with their t and barycentrics in t/u/v[lane].
-inline int intersect_triangles4(const Ray &ray, const RayPrecomp &pc, const TrianglePack4 &pack,
-                                int lanes, float tmin, float tmax, float t_out[4],
-                                float u_out[4], float v_out[4]) {
-    const __m128 ox = _mm_set1_ps(ray.o[pc.kx]), oy = _mm_set1_ps(ray.o[pc.ky]),
-                 oz = _mm_set1_ps(ray.o[pc.kz]);
-    const __m128 sx = _mm_set1_ps(pc.sx), sy = _mm_set1_ps(pc.sy), sz = _mm_set1_ps(pc.sz);
+inline int intersect_triangles4(const RayPrecomp4 &pc, const TrianglePack4 &pack, int lanes,
+                                float tmin, float tmax, float t_out[4], float u_out[4],
+                                float v_out[4]) {
+    const __m128 ox = pc.ox, oy = pc.oy, oz = pc.oz, sx = pc.sx, sy = pc.sy, sz = pc.sz;
     // Translate to the ray origin and shear (per vertex: x, y and the unscaled z).
     __m128 x[3], y[3], z[3];
     for (int k = 0; k < 3; ++k) {
