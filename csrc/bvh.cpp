@@ -1,10 +1,51 @@
+// Layout of the BVH.
+//
+// Build: a binary tree of BinaryNodes with the binned SAH (16 bins, leaves of at most 8
+// primitives), as in pbrt, except that a leaf costs by the packs of four triangles it needs,
+// since four are tested at once (Embree's block size), plus one pack per sphere.
+//
+// Collapse: each binary inner node becomes a BVHNode4 whose children are found by repeatedly
+// opening the inner child of largest surface area until there are four (Wald et al. 2008,
+// "Getting rid of packets"). A BVHNode4 (128 bytes) keeps
+// the four child boxes in structure-of-arrays form, lo[axis][child] and hi[axis][child], so
+// that one SSE slab test covers all four, and a 32-bit reference per child:
+//   - an inner node: its index in nodes_ (the top bit clear);
+//   - a leaf: LeafBit | first << 3 | (count - 1), a run of `count` (at most 8) PrimPack4s
+//     starting at packs_[first];
+//   - nothing (fewer than four children): EmptyChild, with an empty box no ray enters.
+// A PrimPack4 holds four consecutive primitives of a leaf: the vertices of its triangles,
+// again per lane, for the 4-wide watertight test, and the ids; sphere lanes are tested one
+// at a time (in double precision).
+//
+// Traversal: a stack of (reference, entry distance). An inner node's hit children are visited
+// nearest first, the others pushed farthest first; entries farther than the nearest hit so far
+// are skipped when popped; the hit children are prefetched, as traversal waits on memory.
+// Any-hit (shadow) queries do not order children and return at the first hit.
+
 #include "bvh.h"
 
 #include <algorithm>
+#include <stdexcept>
 
 namespace rbpt {
 
 namespace {
+
+/// A node of the binary build tree (pbrt's linear layout: the first child follows its parent).
+struct BinaryNode {
+    Vec3 lo;
+    uint32_t offset;  ///< leaf: first primitive slot; interior: index of the second child
+    Vec3 hi;
+    uint32_t count;   ///< primitives in a leaf, 0 for interior nodes
+};
+
+constexpr uint32_t LeafBit = 0x80000000u;
+constexpr uint32_t EmptyChild = 0xffffffffu;
+/// Deepest 4-wide tree the traversal stack allows (at most three pushes per level).
+constexpr int MaxDepth = 64;
+constexpr int StackSize = 3 * MaxDepth + 1;
+/// Box exits are widened by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
+constexpr float BoxWiden = 1.0000004f;
 
 struct Bounds {
     Vec3 lo{Infinity, Infinity, Infinity}, hi{-Infinity, -Infinity, -Infinity};
@@ -22,31 +63,39 @@ struct PrimInfo {
     Bounds bounds;
     Vec3 centroid;
     uint32_t id;
+    bool sphere;
 };
 
 constexpr int Bins = 16;
 constexpr int MaxLeafSize = 8;
-constexpr float TraversalCost = 1.f, IntersectionCost = 1.f;
+/// Build costs: a binary node (half a 4-wide node) and the test of a pack of four triangles.
+constexpr float TraversalCost = 1.f, PackCost = 4.f;
+/// Tests for n primitives of which `spheres` are spheres, in packs: triangles go four at a
+/// time, while each sphere costs about a pack (a double precision test of its own).
+inline float pack_tests(uint32_t n, uint32_t spheres) {
+    return float((n - spheres + 3) / 4 + spheres);
+}
 
 struct Builder {
     std::vector<PrimInfo> &prims;
-    std::vector<BVHNode> &nodes;
+    std::vector<BinaryNode> &nodes;
 
     // Build the subtree over prims[begin, end) into nodes[index].
     void build(uint32_t index, uint32_t begin, uint32_t end) {
         Bounds bounds, centroids;
+        uint32_t spheres = 0;
         for (uint32_t i = begin; i < end; ++i) {
             bounds.extend(prims[i].bounds);
             centroids.extend(prims[i].centroid);
+            spheres += prims[i].sphere;
         }
-        BVHNode &node = nodes[index];
+        BinaryNode &node = nodes[index];
         node.lo = bounds.lo;
         node.hi = bounds.hi;
         uint32_t count = end - begin;
         auto make_leaf = [&] {
             nodes[index].offset = begin;
-            nodes[index].count = uint16_t(count);
-            nodes[index].axis = 0;
+            nodes[index].count = count;
         };
         if (count <= 2) return make_leaf();
 
@@ -57,30 +106,35 @@ struct Builder {
         for (int axis = 0; axis < 3; ++axis) {
             if (extent[axis] <= 0.f) continue;
             Bounds bin_bounds[Bins];
-            uint32_t bin_count[Bins] = {};
+            uint32_t bin_count[Bins] = {}, bin_spheres[Bins] = {};
             float scale = Bins / extent[axis];
             for (uint32_t i = begin; i < end; ++i) {
                 int b = std::min(Bins - 1, int((prims[i].centroid[axis] - centroids.lo[axis]) * scale));
                 bin_bounds[b].extend(prims[i].bounds);
                 bin_count[b]++;
+                bin_spheres[b] += prims[i].sphere;
             }
             float right_area[Bins];
-            uint32_t right_count[Bins];
+            uint32_t right_count[Bins], right_spheres[Bins];
             Bounds acc;
-            uint32_t n = 0;
+            uint32_t n = 0, ns = 0;
             for (int b = Bins - 1; b > 0; --b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
+                ns += bin_spheres[b];
                 right_area[b] = acc.area();
                 right_count[b] = n;
+                right_spheres[b] = ns;
             }
             acc = Bounds();
-            n = 0;
+            n = ns = 0;
             for (int b = 0; b < Bins - 1; ++b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
+                ns += bin_spheres[b];
                 if (n == 0 || right_count[b + 1] == 0) continue;
-                float cost = acc.area() * n + right_area[b + 1] * right_count[b + 1];
+                float cost = acc.area() * pack_tests(n, ns) +
+                             right_area[b + 1] * pack_tests(right_count[b + 1], right_spheres[b + 1]);
                 if (cost < best_cost) {
                     best_cost = cost;
                     best_axis = axis;
@@ -91,11 +145,11 @@ struct Builder {
         if (best_axis < 0) {
             if (count <= MaxLeafSize) return make_leaf();
             // All centroids coincide: split the list in the middle.
-            return split(index, begin, begin + count / 2, end, 0);
+            return split(index, begin, begin + count / 2, end);
         }
-        float leaf_cost = IntersectionCost * count;
+        float leaf_cost = PackCost * pack_tests(count, spheres);
         float area = std::max(bounds.area(), 1e-30f);
-        float split_cost = TraversalCost + IntersectionCost * best_cost / area;
+        float split_cost = TraversalCost + PackCost * best_cost / area;
         if (count <= MaxLeafSize && leaf_cost <= split_cost) return make_leaf();
         float scale = Bins / extent[best_axis];
         auto mid_it = std::partition(prims.begin() + begin, prims.begin() + end,
@@ -105,10 +159,10 @@ struct Builder {
                                                                         scale));
                                          return b <= best_split;
                                      });
-        split(index, begin, uint32_t(mid_it - prims.begin()), end, best_axis);
+        split(index, begin, uint32_t(mid_it - prims.begin()), end);
     }
 
-    void split(uint32_t index, uint32_t begin, uint32_t mid, uint32_t end, int axis) {
+    void split(uint32_t index, uint32_t begin, uint32_t mid, uint32_t end) {
         uint32_t left = uint32_t(nodes.size());
         nodes.emplace_back();
         build(left, begin, mid);
@@ -117,7 +171,91 @@ struct Builder {
         build(right, mid, end);
         nodes[index].offset = right;
         nodes[index].count = 0;
-        nodes[index].axis = uint16_t(axis);
+    }
+};
+
+double binary_area(const BinaryNode &n) {
+    Vec3 e = n.hi - n.lo;
+    return 2.0 * (double(e.x) * e.y + double(e.y) * e.z + double(e.z) * e.x);
+}
+
+/// Turns the binary tree into 4-wide nodes and its leaves into packs of four primitives.
+struct Collapser {
+    const std::vector<BinaryNode> &bin;
+    const std::vector<PrimInfo> &prims;
+    const Geometry &geometry;
+    std::vector<BVHNode4> &nodes;
+    std::vector<PrimPack4> &packs;
+
+    uint32_t leaf(const BinaryNode &n) {
+        uint32_t first = uint32_t(packs.size());
+        for (uint32_t i = 0; i < n.count; i += 4) {
+            PrimPack4 pack{};
+            for (uint32_t lane = 0; lane < 4; ++lane) {
+                pack.prim[lane] = ~0u;
+                if (i + lane >= n.count) continue;
+                uint32_t id = prims[n.offset + i + lane].id;
+                pack.prim[lane] = id;
+                if (!geometry.is_triangle(id)) {
+                    pack.spheres |= uint8_t(1 << lane);
+                    continue;
+                }
+                pack.triangles |= uint8_t(1 << lane);
+                const Triangle &tri = geometry.triangles[id];
+                for (int k = 0; k < 3; ++k)
+                    for (int axis = 0; axis < 3; ++axis)
+                        pack.tris.v[k][axis][lane] = geometry.positions[tri.v[k]][axis];
+            }
+            packs.push_back(pack);
+        }
+        uint32_t count = uint32_t(packs.size()) - first;
+        return LeafBit | first << 3 | (count - 1);
+    }
+
+    /// The 4-wide node for binary inner node `b` at depth `depth`; returns its index.
+    uint32_t inner(uint32_t b, int depth) {
+        if (depth >= MaxDepth) throw std::runtime_error("BVH: the tree is deeper than 64 levels");
+        // Open the inner child of largest area until there are four children.
+        uint32_t kids[4] = {b + 1, bin[b].offset};
+        int n = 2;
+        while (n < 4) {
+            int best = -1;
+            double best_area = -1.0;
+            for (int i = 0; i < n; ++i) {
+                if (bin[kids[i]].count == 0 && binary_area(bin[kids[i]]) > best_area) {
+                    best = i;
+                    best_area = binary_area(bin[kids[i]]);
+                }
+            }
+            if (best < 0) break;
+            uint32_t k = kids[best];
+            kids[best] = k + 1;
+            kids[n++] = bin[k].offset;
+        }
+        return node(kids, n, depth);
+    }
+
+    /// A 4-wide node over the binary nodes kids[0, n); returns its index.
+    uint32_t node(const uint32_t *kids, int n, int depth) {
+        uint32_t index = uint32_t(nodes.size());
+        nodes.emplace_back();
+        for (int c = 0; c < 4; ++c) {
+            Vec3 lo{Infinity, Infinity, Infinity}, hi{-Infinity, -Infinity, -Infinity};
+            uint32_t ref = EmptyChild;
+            if (c < n) {
+                const BinaryNode &kid = bin[kids[c]];
+                lo = kid.lo;
+                hi = kid.hi;
+                ref = kid.count ? leaf(kid) : inner(kids[c], depth + 1);
+            }
+            BVHNode4 &node = nodes[index];  // (inner() may have moved the vector)
+            for (int axis = 0; axis < 3; ++axis) {
+                node.lo[axis][c] = lo[axis];
+                node.hi[axis][c] = hi[axis];
+            }
+            node.child[c] = ref;
+        }
+        return index;
     }
 };
 
@@ -137,114 +275,156 @@ void BVH::build(const Geometry &geometry) {
             b.extend(s.center - r);
             b.extend(s.center + r);
         }
-        prims[i] = {b, b.center(), i};
+        prims[i] = {b, b.center(), i, !geometry.is_triangle(i)};
     }
     nodes_.clear();
-    nodes_.reserve(2 * size_t(n) + 1);
-    nodes_.emplace_back();
-    if (n == 0) {
-        // An empty scene: a root box that no ray can enter.
-        nodes_[0] = BVHNode{{Infinity, Infinity, Infinity}, 0, {-Infinity, -Infinity, -Infinity}, 0, 0};
+    packs_.clear();
+    sah_cost_ = 0.0;
+    if (n == 0) return;  // an empty scene: traversal returns at once
+
+    // Build the binary tree.
+    std::vector<BinaryNode> bin;
+    bin.reserve(2 * size_t(n) + 1);
+    bin.emplace_back();
+    Builder{prims, bin}.build(0, 0, n);
+    double root = binary_area(bin[0]);
+    for (const BinaryNode &node : bin)
+        sah_cost_ += binary_area(node) / root * (node.count ? double(node.count) : 1.0);
+
+    // Collapse it; a root that is a leaf becomes the only child of a 4-wide root.
+    Collapser collapser{bin, prims, geometry, nodes_, packs_};
+    const uint32_t root_kid = 0;
+    if (bin[0].count == 0) {
+        collapser.inner(0, 0);
     } else {
-        Builder{prims, nodes_}.build(0, 0, n);
-    }
-    prims_.resize(n);
-    verts_.assign(3 * size_t(n), Vec3());
-    for (uint32_t i = 0; i < n; ++i) {
-        prims_[i] = prims[i].id;
-        if (geometry.is_triangle(prims[i].id)) {
-            const Triangle &tri = geometry.triangles[prims[i].id];
-            for (int k = 0; k < 3; ++k) verts_[3 * i + k] = geometry.positions[tri.v[k]];
-        }
+        collapser.node(&root_kid, 1, 0);
     }
 }
-
-double BVH::sah_cost() const {
-    if (prims_.empty()) return 0.0;
-    auto area = [](const BVHNode &n) {
-        Vec3 e = n.hi - n.lo;
-        return 2.0 * (double(e.x) * e.y + double(e.y) * e.z + double(e.z) * e.x);
-    };
-    double root = area(nodes_[0]), cost = 0.0;
-    for (const BVHNode &n : nodes_)
-        cost += area(n) / root * (n.count ? IntersectionCost * n.count : TraversalCost);
-    return cost;
-}
-
-namespace {
-
-/// Slab test against a node's box; returns the entry distance or Infinity on a miss.
-inline float hit_box(const BVHNode &node, const Vec3 &o, const Vec3 &inv_d, float tmin,
-                     float tmax) {
-    float tx0 = (node.lo.x - o.x) * inv_d.x, tx1 = (node.hi.x - o.x) * inv_d.x;
-    float ty0 = (node.lo.y - o.y) * inv_d.y, ty1 = (node.hi.y - o.y) * inv_d.y;
-    float tz0 = (node.lo.z - o.z) * inv_d.z, tz1 = (node.hi.z - o.z) * inv_d.z;
-    float t0 = std::max(std::max(std::min(tx0, tx1), std::min(ty0, ty1)),
-                        std::max(std::min(tz0, tz1), tmin));
-    float t1 = std::min(std::min(std::max(tx0, tx1), std::max(ty0, ty1)),
-                        std::min(std::max(tz0, tz1), tmax));
-    // Widen the exit by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
-    return t0 <= t1 * 1.0000004f ? t0 : Infinity;
-}
-
-}  // namespace
 
 template <bool AnyHit>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
-    if (prims_.empty()) return false;
-    RayPrecomp pc(ray.d);
-    Vec3 inv_d{1.f / ray.d.x, 1.f / ray.d.y, 1.f / ray.d.z};
-    bool neg[3] = {ray.d.x < 0.f, ray.d.y < 0.f, ray.d.z < 0.f};
+    if (nodes_.empty()) return false;
+    // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
+    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    RayPrecomp4 pc(ray);
+    __m128 o4[3], inv_d4[3];
+    bool neg[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        float inv_d = 1.f / ray.d[axis];
+        o4[axis] = _mm_set1_ps(ray.o[axis]);
+        inv_d4[axis] = _mm_set1_ps(inv_d);
+        neg[axis] = std::signbit(inv_d);
+    }
+    const __m128 tmin4 = _mm_set1_ps(ray.tmin), widen = _mm_set1_ps(BoxWiden);
     float tmax = ray.tmax;
     bool found = false;
-    uint32_t stack[64];
+    struct Entry {
+        uint32_t ref;
+        float t;  ///< entry distance into the box
+    } stack[StackSize];
     int sp = 0;
-    uint32_t index = 0;
-    if (hit_box(nodes_[0], ray.o, inv_d, ray.tmin, tmax) == Infinity) return false;
+    uint32_t ref = 0;
     while (true) {
-        const BVHNode &node = nodes_[index];
-        if (node.count > 0) {
-            // Intersect the primitives of a leaf.
-            for (uint32_t slot = node.offset; slot < node.offset + node.count; ++slot) {
-                uint32_t prim = prims_[slot];
-                float t, u = 0.f, v = 0.f;
-                bool h;
-                if (geometry_->is_triangle(prim)) {
-                    h = intersect_triangle(ray, pc, verts_[3 * slot], verts_[3 * slot + 1],
-                                           verts_[3 * slot + 2], ray.tmin, tmax, &t, &u, &v);
-                } else {
-                    const Shape &s = geometry_->sphere_shape(prim);
-                    h = intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t);
+        if (!(ref & LeafBit)) {
+            // Slab test of the four child boxes. A NaN (0 * inf, the origin on a slab plane
+            // of a parallel ray) is dropped by max/min, which return their second operand.
+            const BVHNode4 &node = nodes_[ref];
+            __m128 t0 = tmin4, t1 = _mm_set1_ps(tmax);
+            for (int axis = 0; axis < 3; ++axis) {
+                __m128 lo = _mm_load_ps(node.lo[axis]), hi = _mm_load_ps(node.hi[axis]);
+                __m128 t_near = _mm_mul_ps(_mm_sub_ps(neg[axis] ? hi : lo, o4[axis]), inv_d4[axis]);
+                __m128 t_far = _mm_mul_ps(_mm_sub_ps(neg[axis] ? lo : hi, o4[axis]), inv_d4[axis]);
+                t0 = _mm_max_ps(t_near, t0);
+                t1 = _mm_min_ps(t_far, t1);
+            }
+            int mask = _mm_movemask_ps(_mm_cmple_ps(t0, _mm_mul_ps(t1, widen)));
+            if (mask) {
+                alignas(16) float t_entry[4];
+                _mm_store_ps(t_entry, t0);
+                // Start loading the hit children now: traversal is bound by memory latency.
+                for (int m = mask; m; m &= m - 1) {
+                    uint32_t child = node.child[__builtin_ctz(m)];
+                    const char *p = (child & LeafBit)
+                                        ? reinterpret_cast<const char *>(&packs_[(child & ~LeafBit) >> 3])
+                                        : reinterpret_cast<const char *>(&nodes_[child]);
+                    _mm_prefetch(p, _MM_HINT_T0);
+                    _mm_prefetch(p + 64, _MM_HINT_T0);
+                    _mm_prefetch(p + 128, _MM_HINT_T0);
                 }
-                if (!h) continue;
-                if (AnyHit) return true;
-                found = true;
-                tmax = t;
-                hit->t = t;
-                hit->prim = prim;
-                hit->u = u;
-                hit->v = v;
+                int c = __builtin_ctz(mask);
+                mask &= mask - 1;
+                if (!mask) {
+                    ref = node.child[c];
+                    continue;
+                }
+                if (AnyHit) {
+                    // Any hit ends the query, so the order does not matter: visit the first.
+                    for (; mask; mask &= mask - 1) {
+                        int other = __builtin_ctz(mask);
+                        stack[sp++] = {node.child[other], t_entry[other]};
+                    }
+                    ref = node.child[c];
+                    continue;
+                }
+                // Several children: order them by entry distance, farthest first.
+                Entry hits[4] = {{node.child[c], t_entry[c]}};
+                int n = 1;
+                for (; mask; mask &= mask - 1, ++n) {
+                    c = __builtin_ctz(mask);
+                    Entry e{node.child[c], t_entry[c]};
+                    int i = n;
+                    for (; i > 0 && hits[i - 1].t < e.t; --i) hits[i] = hits[i - 1];
+                    hits[i] = e;
+                }
+                for (int i = 0; i < n - 1; ++i) stack[sp++] = hits[i];
+                ref = hits[n - 1].ref;
+                continue;
             }
         } else {
-            // Visit the nearer child first; the other goes on the stack.
-            uint32_t first = index + 1, second = node.offset;
-            if (neg[node.axis]) std::swap(first, second);
-            float t_first = hit_box(nodes_[first], ray.o, inv_d, ray.tmin, tmax);
-            float t_second = hit_box(nodes_[second], ray.o, inv_d, ray.tmin, tmax);
-            if (t_first != Infinity) {
-                if (t_second != Infinity) stack[sp++] = second;
-                index = first;
-                continue;
-            }
-            if (t_second != Infinity) {
-                index = second;
-                continue;
+            // Intersect the packs of a leaf.
+            uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
+            for (uint32_t p = first; p < last; ++p) {
+                const PrimPack4 &pack = packs_[p];
+                if (pack.triangles) {
+                    float t[4], u[4], v[4];
+                    int mask = intersect_triangles4(pc, pack.tris, pack.triangles, ray.tmin, tmax,
+                                                    t, u, v);
+                    if (mask) {
+                        if (AnyHit) return true;
+                        int best = __builtin_ctz(mask);
+                        for (mask &= mask - 1; mask; mask &= mask - 1) {
+                            int i = __builtin_ctz(mask);
+                            if (t[i] < t[best]) best = i;
+                        }
+                        found = true;
+                        tmax = t[best];
+                        hit->t = t[best];
+                        hit->prim = pack.prim[best];
+                        hit->u = u[best];
+                        hit->v = v[best];
+                    }
+                }
+                for (int mask = pack.spheres; mask; mask &= mask - 1) {
+                    uint32_t prim = pack.prim[__builtin_ctz(mask)];
+                    const Shape &s = geometry_->sphere_shape(prim);
+                    float t;
+                    if (!intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t)) continue;
+                    if (AnyHit) return true;
+                    found = true;
+                    tmax = t;
+                    hit->t = t;
+                    hit->prim = prim;
+                    hit->u = hit->v = 0.f;
+                }
             }
         }
-        if (sp == 0) break;
-        index = stack[--sp];
+        // Pop the next entry that may still hold a nearer hit.
+        do {
+            if (sp == 0) return found;
+            --sp;
+        } while (stack[sp].t > tmax * BoxWiden);
+        ref = stack[sp].ref;
     }
-    return found;
 }
 
 bool BVH::intersect(const Ray &ray, Hit *hit) const { return traverse<false>(ray, hit); }

@@ -1,5 +1,6 @@
 // Bounding volume hierarchy over all primitives (triangles and spheres), built once at load
-// with the binned surface area heuristic and traversed with a small fixed stack.
+// with the binned surface area heuristic, collapsed into a 4-wide tree and traversed with SSE
+// (four child boxes and four triangles per test). The layout is described in bvh.cpp.
 #pragma once
 
 #include <cstdint>
@@ -9,14 +10,23 @@
 
 namespace rbpt {
 
-struct BVHNode {
-    Vec3 lo;
-    uint32_t offset;  ///< leaf: first primitive slot; interior: index of the second child
-    Vec3 hi;
-    uint16_t count;   ///< primitives in a leaf, 0 for interior nodes
-    uint16_t axis;    ///< split axis of an interior node (for front-to-back traversal)
+/// A 4-wide node: the boxes of its four children side by side (lo[axis][child]) and a
+/// reference per child (an inner node, a leaf or nothing; see bvh.cpp).
+struct alignas(64) BVHNode4 {
+    float lo[3][4];
+    float hi[3][4];
+    uint32_t child[4];
 };
-static_assert(sizeof(BVHNode) == 32, "BVHNode should stay 32 bytes");
+static_assert(sizeof(BVHNode4) == 128, "BVHNode4 should stay two cache lines");
+
+/// Up to four primitives of a leaf: triangle vertices for the SSE test, the primitive ids,
+/// and which lanes hold triangles and spheres.
+struct PrimPack4 {
+    TrianglePack4 tris;
+    uint32_t prim[4];
+    uint8_t triangles;  ///< bit mask of the lanes holding triangles
+    uint8_t spheres;    ///< bit mask of the lanes holding spheres
+};
 
 class BVH {
 public:
@@ -24,21 +34,22 @@ public:
     void build(const Geometry &geometry);
     /// Nearest hit of `ray` in (ray.tmin, ray.tmax); returns false on a miss.
     bool intersect(const Ray &ray, Hit *hit) const;
-    /// Whether anything blocks `ray` in (ray.tmin, ray.tmax).
+    /// Whether anything blocks `ray` in (ray.tmin, ray.tmax); stops at the first hit.
     bool occluded(const Ray &ray) const;
 
+    /// Number of 4-wide nodes.
     size_t node_count() const { return nodes_.size(); }
-    /// SAH cost of the tree (traversal 1, intersection 1), for tests and tuning.
-    double sah_cost() const;
+    /// SAH cost of the binary tree before collapsing (traversal 1, intersection 1), for tests.
+    double sah_cost() const { return sah_cost_; }
 
 private:
     template <bool AnyHit>
     bool traverse(const Ray &ray, Hit *hit) const;
 
     const Geometry *geometry_ = nullptr;
-    std::vector<BVHNode> nodes_;
-    std::vector<uint32_t> prims_;  ///< primitive id per slot, in leaf order
-    std::vector<Vec3> verts_;      ///< three vertices per slot (triangles), for locality
+    std::vector<BVHNode4> nodes_;
+    std::vector<PrimPack4> packs_;  ///< leaf contents, each leaf a run of packs
+    double sah_cost_ = 0.0;
 };
 
 }  // namespace rbpt

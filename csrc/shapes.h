@@ -2,6 +2,8 @@
 // interaction at a hit, and sampling points on shapes for area emitters.
 #pragma once
 
+#include <emmintrin.h>  // SSE2, part of the x86-64 baseline
+
 #include <cstdint>
 #include <vector>
 
@@ -127,6 +129,85 @@ inline bool intersect_triangle(const Ray &ray, const RayPrecomp &pc, const Vec3 
     *u_out = V * inv_det;
     *v_out = W * inv_det;
     return true;
+}
+
+/// Up to four triangles laid out for intersect_triangles4: v[vertex][axis][lane].
+struct alignas(16) TrianglePack4 {
+    float v[3][3][4];
+};
+
+/// Per-ray constants of intersect_triangles4: those of RayPrecomp and the origin, permuted
+/// and splatted over four lanes.
+struct RayPrecomp4 {
+    int kx, ky, kz;
+    __m128 ox, oy, oz, sx, sy, sz;
+    explicit RayPrecomp4(const Ray &ray) {
+        RayPrecomp pc(ray.d);
+        kx = pc.kx;
+        ky = pc.ky;
+        kz = pc.kz;
+        ox = _mm_set1_ps(ray.o[kx]);
+        oy = _mm_set1_ps(ray.o[ky]);
+        oz = _mm_set1_ps(ray.o[kz]);
+        sx = _mm_set1_ps(pc.sx);
+        sy = _mm_set1_ps(pc.sy);
+        sz = _mm_set1_ps(pc.sz);
+    }
+};
+
+/// Four watertight ray-triangle tests at once with SSE: the same operations as
+/// intersect_triangle, lane by lane, so the results are identical (including the double
+/// precision retry when an edge function is zero). Tests the lanes set in `lanes` and returns
+/// the mask of those hit in (tmin, tmax), with their t and barycentrics in t/u/v[lane].
+inline int intersect_triangles4(const RayPrecomp4 &pc, const TrianglePack4 &pack, int lanes,
+                                float tmin, float tmax, float t_out[4], float u_out[4],
+                                float v_out[4]) {
+    const __m128 ox = pc.ox, oy = pc.oy, oz = pc.oz, sx = pc.sx, sy = pc.sy, sz = pc.sz;
+    // Translate to the ray origin and shear (per vertex: x, y and the unscaled z).
+    __m128 x[3], y[3], z[3];
+    for (int k = 0; k < 3; ++k) {
+        z[k] = _mm_sub_ps(_mm_load_ps(pack.v[k][pc.kz]), oz);
+        x[k] = _mm_sub_ps(_mm_sub_ps(_mm_load_ps(pack.v[k][pc.kx]), ox), _mm_mul_ps(sx, z[k]));
+        y[k] = _mm_sub_ps(_mm_sub_ps(_mm_load_ps(pack.v[k][pc.ky]), oy), _mm_mul_ps(sy, z[k]));
+    }
+    // Edge functions U (edge bc), V (edge ca), W (edge ab).
+    __m128 U = _mm_sub_ps(_mm_mul_ps(x[2], y[1]), _mm_mul_ps(y[2], x[1]));
+    __m128 V = _mm_sub_ps(_mm_mul_ps(x[0], y[2]), _mm_mul_ps(y[0], x[2]));
+    __m128 W = _mm_sub_ps(_mm_mul_ps(x[1], y[0]), _mm_mul_ps(y[1], x[0]));
+    const __m128 zero = _mm_setzero_ps();
+    int on_edge = _mm_movemask_ps(_mm_or_ps(_mm_or_ps(_mm_cmpeq_ps(U, zero), _mm_cmpeq_ps(V, zero)),
+                                            _mm_cmpeq_ps(W, zero))) & lanes;
+    if (on_edge) {
+        // Edge case: redo the 2D edge tests of those lanes in double (watertight edges).
+        alignas(16) float ax[4], ay[4], bx[4], by[4], cx[4], cy[4], u[4], v[4], w[4];
+        _mm_store_ps(ax, x[0]); _mm_store_ps(ay, y[0]);
+        _mm_store_ps(bx, x[1]); _mm_store_ps(by, y[1]);
+        _mm_store_ps(cx, x[2]); _mm_store_ps(cy, y[2]);
+        _mm_store_ps(u, U); _mm_store_ps(v, V); _mm_store_ps(w, W);
+        for (int i = 0; i < 4; ++i) {
+            if (!(on_edge >> i & 1)) continue;
+            u[i] = float(double(cx[i]) * by[i] - double(cy[i]) * bx[i]);
+            v[i] = float(double(ax[i]) * cy[i] - double(ay[i]) * cx[i]);
+            w[i] = float(double(bx[i]) * ay[i] - double(by[i]) * ax[i]);
+        }
+        U = _mm_load_ps(u); V = _mm_load_ps(v); W = _mm_load_ps(w);
+    }
+    // Inside when the edge functions do not differ in sign.
+    __m128 neg = _mm_or_ps(_mm_or_ps(_mm_cmplt_ps(U, zero), _mm_cmplt_ps(V, zero)), _mm_cmplt_ps(W, zero));
+    __m128 pos = _mm_or_ps(_mm_or_ps(_mm_cmpgt_ps(U, zero), _mm_cmpgt_ps(V, zero)), _mm_cmpgt_ps(W, zero));
+    __m128 det = _mm_add_ps(_mm_add_ps(U, V), W);
+    int inside = ~_mm_movemask_ps(_mm_and_ps(neg, pos)) & _mm_movemask_ps(_mm_cmpneq_ps(det, zero)) & lanes;
+    if (!inside) return 0;
+    __m128 T = _mm_add_ps(_mm_add_ps(_mm_mul_ps(U, _mm_mul_ps(sz, z[0])), _mm_mul_ps(V, _mm_mul_ps(sz, z[1]))),
+                          _mm_mul_ps(W, _mm_mul_ps(sz, z[2])));
+    __m128 inv_det = _mm_div_ps(_mm_set1_ps(1.f), det);
+    __m128 t = _mm_mul_ps(T, inv_det);
+    int hit = _mm_movemask_ps(_mm_and_ps(_mm_cmpgt_ps(t, _mm_set1_ps(tmin)), _mm_cmplt_ps(t, _mm_set1_ps(tmax)))) & inside;
+    if (!hit) return 0;
+    _mm_storeu_ps(t_out, t);
+    _mm_storeu_ps(u_out, _mm_mul_ps(V, inv_det));
+    _mm_storeu_ps(v_out, _mm_mul_ps(W, inv_det));
+    return hit;
 }
 
 /// Ray-sphere intersection in double precision; the nearest root in (tmin, tmax).

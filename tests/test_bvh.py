@@ -75,3 +75,39 @@ def test03_sphere_hits_from_outside_and_inside():
     t, shape = tr._C.intersect_rays(scene._native, o, d)
     torch.testing.assert_close(t[:2], torch.tensor([2.5, 0.5]))
     assert shape.tolist() == [0, 0, -1] and torch.isinf(t[2])
+
+
+def test04_many_spheres_and_a_mesh_match_brute_force(shared):
+    # Spheres and triangles share leaves (packs of four) in the 4-wide BVH: nearest hits and
+    # shapes must match testing every primitive.
+    rng = np.random.default_rng(2)
+    centers = rng.uniform(-1, 1, size=(40, 3))
+    radii = rng.uniform(0.02, 0.15, size=40)
+    scene_dict = {"type": "scene"}
+    for i, (c, r) in enumerate(zip(centers, radii)):
+        scene_dict[f"s{i}"] = {"type": "sphere", "center": c.tolist(), "radius": float(r)}
+    path = shared / "meshes" / "bunny.ply"
+    scene_dict["bunny"] = {"type": "ply", "filename": str(path), "to_world": tr.Transform.scale(6)}
+    scene = tr.load_dict(scene_dict)
+    mesh = meshes.load_ply(path).transformed(tr.Transform.scale(6).matrix)
+    n = 400
+    # Rays from anywhere towards points near the spheres and the bunny's vertices.
+    near = np.concatenate([centers[rng.integers(0, 40, n // 2)],
+                           mesh.positions[rng.integers(0, len(mesh.positions), n - n // 2)]])
+    o = rng.uniform(-2, 2, size=(n, 3))
+    d = near + rng.normal(size=(n, 3)) * 0.05 - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, shape = tr._C.intersect_rays(scene._native, torch.from_numpy(o).float(), torch.from_numpy(d).float())
+    oc = o[:, None, :] - centers[None]
+    b = np.einsum("nkj,nj->nk", oc, d)
+    disc = b ** 2 - (np.einsum("nkj,nkj->nk", oc, oc) - radii[None] ** 2)
+    sq = np.sqrt(np.maximum(disc, 0))
+    t_near = np.where(-b - sq > 0, -b - sq, -b + sq)
+    t_sphere = np.where((disc >= 0) & (t_near > 0), t_near, np.inf).min(axis=1)
+    t_mesh = _brute_force(mesh.positions, mesh.faces, o, d)
+    expected = np.minimum(t_sphere, t_mesh)
+    hit = np.isfinite(expected)
+    assert hit.sum() > 200 and (t_mesh < t_sphere).sum() > 50 and (t_sphere < t_mesh).sum() > 50
+    np.testing.assert_array_equal(np.isfinite(t.numpy()), hit)
+    np.testing.assert_allclose(t.numpy()[hit], expected[hit], rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(shape.numpy()[hit] == 40, t_mesh[hit] < t_sphere[hit])
