@@ -101,7 +101,8 @@ struct RayPrecomp {
     }
 };
 
-/// Watertight ray-triangle intersection: no ray slips between triangles sharing an edge.
+/// Watertight ray-triangle intersection: no ray slips between triangles sharing an edge. The
+/// scalar specification of intersect_triangles4, which the BVH uses.
 /// On a hit in (tmin, tmax) returns true with t and barycentrics (u, v) of b and c.
 inline bool intersect_triangle(const Ray &ray, const RayPrecomp &pc, const Vec3 &a, const Vec3 &b,
                                const Vec3 &c, float tmin, float tmax, float *t_out, float *u_out,
