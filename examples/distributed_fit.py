@@ -169,9 +169,7 @@ def main(argv=None) -> float:
         out.mkdir(parents=True, exist_ok=True)
         views = {v: images for part in everything for v, images in part.items()}
         for v, images in views.items():
-            for key, image in images.items():
-                tr.write_image(out / f"{key}_view{v}.exr", image)
-                tr.write_image(out / f"{key}_view{v}.png", image)
+            plots.save_images(out, images, suffix=f"_view{v}")
         save_figures(out, views, losses, errors)
         print(f"fitting: {fit_time:.1f} s for {n} iterations on {world} process(es)")
         print(f"parameters identical on all {world} rank(s): {identical}")

@@ -122,6 +122,7 @@ def save_figures(out: Path, images: dict, losses: list, errors: list[dict]) -> N
     plots.convergence(out / "convergence.png", losses, {name: [e[key] for e in errors] for key, name in NAMES.items()},
                       "|fitted - true| / |true|", "relative parameter errors")
 
+
 def main(argv=None) -> dict[str, float]:
     """Runs the fit; returns the final relative error of each parameter (keyed by scene key)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -175,9 +176,7 @@ def main(argv=None) -> dict[str, float]:
         fitted = apply()
         final = tr.render(scene, spp=cfg["ref_spp"], seed=777).detach()
     images = {"reference": reference, "initial": initial, "final": final}
-    for key, image in images.items():
-        tr.write_image(out / f"{key}.exr", image)
-        tr.write_image(out / f"{key}.png", image)
+    plots.save_images(out, images)
     save_figures(out, images, losses, errors)
 
     final_errors = errors[-1]

@@ -39,6 +39,7 @@ def save_figures(out: Path, images: dict, losses: list, errors: list) -> None:
     plots.image_grid(out / "comparison.png", [images], size=4)
     plots.convergence(out / "convergence.png", losses, {"RMS error": errors}, "RMS error", f"{KEY} error")
 
+
 def main(argv=None) -> float:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     mode = ap.add_mutually_exclusive_group()
@@ -85,9 +86,7 @@ def main(argv=None) -> float:
 
     final = tr.render(scene, spp=cfg["ref_spp"], seed=777).detach()
     images = {"reference": reference, "initial": initial, "final": final}
-    for key, image in images.items():
-        tr.write_image(out / f"{key}.exr", image)
-        tr.write_image(out / f"{key}.png", image)
+    plots.save_images(out, images)
     save_figures(out, images, losses, errors)
     rms = errors[-1]
     print(f"true   {KEY} = {truth.tolist()}")

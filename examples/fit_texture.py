@@ -215,12 +215,8 @@ def main(argv=None) -> float:
 
     finals = [render_view(i, cfg["ref_spp"], 20_000 + i).detach() for i in range(len(VIEWS))]
     for i, (ref, fin) in enumerate(zip(references, finals)):
-        for label, image in (("reference", ref), ("final", fin)):
-            tr.write_image(out / f"{label}_view{i}.exr", image)
-            tr.write_image(out / f"{label}_view{i}.png", image)
-    for label, tex in (("initial_texture", initial_texture), ("final_texture", result)):
-        tr.write_image(out / f"{label}.exr", tex)
-        tr.write_image(out / f"{label}.png", tex)
+        plots.save_images(out, {"reference": ref, "final": fin}, suffix=f"_view{i}")
+    plots.save_images(out, {"initial_texture": initial_texture, "final_texture": result})
     error_map = ((result - truth) ** 2).mean(-1).sqrt()
     save_figures(out, {"target": truth, f"start (grey {START})": initial_texture, "result": result},
                  error_map.numpy(), views_count.numpy(), list(zip(references, finals)), losses, errors,

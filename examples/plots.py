@@ -52,3 +52,10 @@ def convergence(path: Path, losses: list, curves: dict, ylabel: str, title: str,
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def save_images(out: Path, images: dict, suffix: str = "") -> None:
+    """Write each {name: image} as linear EXR and sRGB PNG into `out`."""
+    for name, image in images.items():
+        tr.write_image(out / f"{name}{suffix}.exr", image)
+        tr.write_image(out / f"{name}{suffix}.png", image)
