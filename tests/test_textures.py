@@ -73,3 +73,12 @@ def test04_texels_are_a_live_parameter(ramp):
     up = torch.tensor([[0.0, 0.0, 1.0]])
     value, *_ = query_bsdf(scene, up, up, uv=[[0.375, 0.25]])
     torch.testing.assert_close(value[0] * math.pi, torch.tensor([0.5, 0.0, 0.5]))
+
+
+def test05_bad_bitmaps_name_the_file(tmp_path):
+    with pytest.raises(tr.SceneError, match="bitmap: file 'nope.png' not found"):
+        bsdf_scene({"type": "diffuse", "reflectance": {"type": "bitmap", "filename": "nope.png"}})
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(tr.SceneError, match="bitmap: .*broken.png"):
+        bsdf_scene({"type": "diffuse", "reflectance": {"type": "bitmap", "filename": str(broken)}})

@@ -259,12 +259,13 @@ class _Builder:
         if id(node) in self.built_textures:
             return self.built_textures[id(node)]
         self.check(node, "texture")
-        path = self.resolve(node, self.string(node, "filename", None) if "filename" in node else
-                            self.fail(node, "bitmap: missing parameter 'filename'"))
+        if "filename" not in node:
+            self.fail(node, "bitmap: missing parameter 'filename'")
+        path = self.resolve(node, self.string(node, "filename", ""))
         raw = self.number(node, "raw", False, bool)
         try:
             image = read_image(path, raw=raw)
-        except Exception as e:  # noqa: BLE001 - re-raised with the scene location
+        except (ValueError, OSError) as e:  # re-raised with the scene location
             self.fail(node, f"bitmap: {e}")
         if image.shape[2] == 4:
             image = image[:, :, :3]
