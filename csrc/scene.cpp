@@ -14,43 +14,40 @@ void Scene::build() {
 
 namespace {
 
-/// Process-wide cache of roughplastic tables: computing one costs a few hundred
-/// milliseconds, and their inputs change only when a roughness is edited.
-const RoughPlasticTables *cached_tables(MicrofacetType type, float alpha, float eta) {
+/// Roughplastic tables for (type, alpha, eta), or with `derivative` their derivative with
+/// respect to alpha by central differences of the (smooth) quadratures. Cached process-wide:
+/// computing one costs a few hundred milliseconds, and their inputs change only when a
+/// roughness is edited. Computed outside the lock; a racing duplicate is simply dropped.
+const RoughPlasticTables *cached_tables(MicrofacetType type, float alpha, float eta,
+                                        bool derivative = false) {
     static std::mutex mutex;
-    static std::map<std::tuple<int, float, float>, std::unique_ptr<RoughPlasticTables>> cache;
-    std::lock_guard<std::mutex> lock(mutex);
-    auto key = std::make_tuple(int(type), alpha, eta);
-    auto it = cache.find(key);
-    if (it != cache.end()) return it->second.get();
-    auto tables = std::make_unique<RoughPlasticTables>();
-    tables->compute(type, alpha, eta);
-    return cache.emplace(key, std::move(tables)).first->second.get();
-}
-
-}  // namespace
-
-/// d(tables)/d(alpha) by central differences of the (smooth) quadratures, cached too.
-static const RoughPlasticTables *cached_derivative(MicrofacetType type, float alpha, float eta) {
-    static std::mutex mutex;
-    static std::map<std::tuple<int, float, float>, std::unique_ptr<RoughPlasticTables>> cache;
-    auto key = std::make_tuple(int(type), alpha, eta);
+    static std::map<std::tuple<int, float, float, bool>, std::unique_ptr<RoughPlasticTables>> cache;
+    auto key = std::make_tuple(int(type), alpha, eta, derivative);
     {
         std::lock_guard<std::mutex> lock(mutex);
         auto it = cache.find(key);
         if (it != cache.end()) return it->second.get();
     }
-    float h = 1e-3f * alpha;
-    const RoughPlasticTables *hi = cached_tables(type, alpha + h, eta);
-    const RoughPlasticTables *lo = cached_tables(type, alpha - h, eta);
-    auto d = std::make_unique<RoughPlasticTables>(*hi);
-    float inv = 1.f / (float(double(alpha + h) - double(alpha - h)));
-    for (int i = 0; i < RoughPlasticTables::Resolution; ++i)
-        d->external_transmittance[i] = (hi->external_transmittance[i] - lo->external_transmittance[i]) * inv;
-    d->internal_reflectance = (hi->internal_reflectance - lo->internal_reflectance) * inv;
+    std::unique_ptr<RoughPlasticTables> tables;
+    if (derivative) {
+        float h = 1e-3f * alpha;
+        const RoughPlasticTables *hi = cached_tables(type, alpha + h, eta);
+        const RoughPlasticTables *lo = cached_tables(type, alpha - h, eta);
+        tables = std::make_unique<RoughPlasticTables>(*hi);
+        float inv = 1.f / float(double(alpha + h) - double(alpha - h));
+        for (int i = 0; i < RoughPlasticTables::Resolution; ++i)
+            tables->external_transmittance[i] =
+                (hi->external_transmittance[i] - lo->external_transmittance[i]) * inv;
+        tables->internal_reflectance = (hi->internal_reflectance - lo->internal_reflectance) * inv;
+    } else {
+        tables = std::make_unique<RoughPlasticTables>();
+        tables->compute(type, alpha, eta);
+    }
     std::lock_guard<std::mutex> lock(mutex);
-    return cache.emplace(key, std::move(d)).first->second.get();
+    return cache.emplace(key, std::move(tables)).first->second.get();
 }
+
+}  // namespace
 
 std::vector<BSDFState> prepare_bsdfs(const Scene &scene, const std::vector<float> &alphas,
                                      const std::vector<float> &diffuse_means,
@@ -61,7 +58,7 @@ std::vector<BSDFState> prepare_bsdfs(const Scene &scene, const std::vector<float
         const BSDF &b = scene.bsdfs[i];
         if (b.type != BSDFType::RoughPlastic) continue;
         state[i].tables = cached_tables(b.distribution, alphas[i], b.eta);
-        if (alpha_derivatives[i]) state[i].dtables = cached_derivative(b.distribution, alphas[i], b.eta);
+        if (alpha_derivatives[i]) state[i].dtables = cached_tables(b.distribution, alphas[i], b.eta, true);
         float d = diffuse_means[i], s = specular_means[i];
         state[i].specular_sampling_weight = d + s > 0.f ? s / (d + s) : 0.5f;
     }
