@@ -172,19 +172,25 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     return out;
 }
 
-/// Render an image; returns (image (H, W, 3) of the parameters' dtype, rays traced).
-py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dict &integrator,
-                     const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
-                     int row_begin, int row_end) {
-    PlainTensors plain;
+RenderRequest whole_image(const Camera &cam, int spp, uint64_t seed) {
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
-    Camera cam = make_camera(camera);
-    IntegratorSettings cfg = make_integrator(integrator);
     RenderRequest req;
     req.spp = spp;
     req.seed = seed;
+    req.row_end = cam.crop_height;
+    return req;
+}
+
+/// Render an image; returns (image (H, W, 3) of the parameters' dtype, rays traced).
+py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                       const std::vector<torch::Tensor> &params, int spp, uint64_t seed,
+                       int row_begin, int row_end) {
+    PlainTensors plain;
+    Camera cam = make_camera(camera);
+    IntegratorSettings cfg = make_integrator(integrator);
+    RenderRequest req = whole_image(cam, spp, seed);
     req.row_begin = row_begin;
-    req.row_end = row_end < 0 ? cam.crop_height : row_end;
+    if (row_end >= 0) req.row_end = row_end;
     if (req.row_begin < 0 || req.row_begin >= req.row_end || req.row_end > cam.crop_height)
         fail("rows must satisfy 0 <= begin < end <= crop height");
     bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
@@ -194,14 +200,6 @@ py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dic
     return py::make_tuple(image, rays);
 }
 
-RenderRequest whole_image(const Camera &cam, int spp, uint64_t seed) {
-    if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
-    RenderRequest req;
-    req.spp = spp;
-    req.seed = seed;
-    req.row_end = cam.crop_height;
-    return req;
-}
 
 template <typename T>
 std::vector<std::optional<torch::Tensor>> render_bwd_typed(
