@@ -101,37 +101,6 @@ struct RayPrecomp {
     }
 };
 
-/// Watertight ray-triangle intersection: no ray slips between triangles sharing an edge. The
-/// scalar specification of intersect_triangles4, which the BVH uses.
-/// On a hit in (tmin, tmax) returns true with t and barycentrics (u, v) of b and c.
-inline bool intersect_triangle(const Ray &ray, const RayPrecomp &pc, const Vec3 &a, const Vec3 &b,
-                               const Vec3 &c, float tmin, float tmax, float *t_out, float *u_out,
-                               float *v_out) {
-    Vec3 A = a - ray.o, B = b - ray.o, C = c - ray.o;
-    float ax = A[pc.kx] - pc.sx * A[pc.kz], ay = A[pc.ky] - pc.sy * A[pc.kz];
-    float bx = B[pc.kx] - pc.sx * B[pc.kz], by = B[pc.ky] - pc.sy * B[pc.kz];
-    float cx = C[pc.kx] - pc.sx * C[pc.kz], cy = C[pc.ky] - pc.sy * C[pc.kz];
-    float U = cx * by - cy * bx, V = ax * cy - ay * cx, W = bx * ay - by * ax;
-    if (U == 0.f || V == 0.f || W == 0.f) {
-        // Edge case: redo the 2D edge tests in double so that shared edges stay watertight.
-        U = float(double(cx) * by - double(cy) * bx);
-        V = float(double(ax) * cy - double(ay) * cx);
-        W = float(double(bx) * ay - double(by) * ax);
-    }
-    if ((U < 0.f || V < 0.f || W < 0.f) && (U > 0.f || V > 0.f || W > 0.f)) return false;
-    float det = U + V + W;
-    if (det == 0.f) return false;
-    float az = pc.sz * A[pc.kz], bz = pc.sz * B[pc.kz], cz = pc.sz * C[pc.kz];
-    float T = U * az + V * bz + W * cz;
-    float inv_det = 1.f / det;
-    float t = T * inv_det;
-    if (!(t > tmin && t < tmax)) return false;
-    *t_out = t;
-    *u_out = V * inv_det;
-    *v_out = W * inv_det;
-    return true;
-}
-
 /// Up to four triangles laid out for intersect_triangles4: v[vertex][axis][lane].
 struct alignas(16) TrianglePack4 {
     float v[3][3][4];
@@ -156,9 +125,10 @@ struct RayPrecomp4 {
     }
 };
 
-/// Four watertight ray-triangle tests at once with SSE: the same operations as
-/// intersect_triangle, lane by lane, so the results are identical (including the double
-/// precision retry when an edge function is zero). Tests the lanes set in `lanes` and returns
+/// Four watertight ray-triangle tests at once with SSE (Woop, Benthin and Wald 2013): the
+/// vertices are sheared into the ray's frame and the hit is decided by the signs of three 2D
+/// edge functions, so no ray slips between triangles sharing an edge; an edge function that
+/// is exactly zero is recomputed in double precision. Tests the lanes set in `lanes` and returns
 /// the mask of those hit in (tmin, tmax), with their t and barycentrics in t/u/v[lane].
 inline int intersect_triangles4(const RayPrecomp4 &pc, const TrianglePack4 &pack, int lanes,
                                 float tmin, float tmax, float t_out[4], float u_out[4],
