@@ -100,12 +100,17 @@ class _Builder:
     def fail(self, node, message: str):
         raise SceneError(f"{_where(node)}: {message}")
 
+    def resolve_ref(self, value):
+        """The plugin a {"type": "ref", "id": ...} names (other values pass through)."""
+        if not (isinstance(value, dict) and value.get("type") == "ref"):
+            return value
+        target = self.objects.get(value.get("id"))
+        if target is None:
+            self.fail(value, f"reference to unknown id '{value.get('id')}'")
+        return target
+
     def deref(self, value, category: str, where_node):
-        if isinstance(value, dict) and value.get("type") == "ref":
-            target = self.objects.get(value["id"])
-            if target is None:
-                self.fail(value, f"reference to unknown id '{value['id']}'")
-            value = target
+        value = self.resolve_ref(value)
         if not _is_plugin(value) or CATEGORY.get(value["type"]) != category:
             got = value.get("type") if isinstance(value, dict) else type(value).__name__
             self.fail(where_node, f"expected a {category} plugin, got '{got}'")
@@ -125,10 +130,7 @@ class _Builder:
             if key.startswith("__") or key in ("type", "id"):
                 continue
             if _is_plugin(value):
-                target = self.objects.get(value.get("id")) if value["type"] == "ref" else value
-                if target is None:
-                    self.fail(value, f"reference to unknown id '{value.get('id')}'")
-                cat = CATEGORY.get(target["type"])
+                cat = CATEGORY.get(self.resolve_ref(value)["type"])
                 if key in allowed or cat in nested:
                     continue
                 self.fail(value if value.get("__where__") else node,
@@ -142,14 +144,9 @@ class _Builder:
         for key, value in node.items():
             if key.startswith("__") or not _is_plugin(value):
                 continue
-            if value["type"] == "ref":
-                target = self.objects.get(value["id"])
-                if target is None:
-                    self.fail(value, f"reference to unknown id '{value['id']}'")
-                if CATEGORY.get(target["type"]) == category:
-                    out.append((key, target, True))
-            elif CATEGORY.get(value["type"]) == category:
-                out.append((key, value, False))
+            target = self.resolve_ref(value)
+            if CATEGORY.get(target["type"]) == category:
+                out.append((key, target, target is not value))
         return out
 
     def add_param(self, key: str, value) -> int:
