@@ -89,7 +89,9 @@ Camera make_camera(const py::dict &d) {
     else fail("unknown filter '" + filter + "'");
     cam.filter.radius = get<float>(d, "filter_radius");
     cam.filter.stddev = get<float>(d, "filter_stddev");
-    cam.filter.prepare();
+    if (!(cam.filter.radius > 0.f) || cam.filter.border() > Filter::MaxBorder)
+        fail("filter radius must lie in (0, " + std::to_string(Filter::MaxBorder) + ".5] pixels, got " +
+             std::to_string(cam.filter.radius));
     return cam;
 }
 
@@ -127,10 +129,27 @@ Params<RGB<T>> bind_params(const Scene &scene, const std::vector<torch::Tensor> 
         if (t.numel() != info.numel)
             fail("parameter '" + info.name + "' must have " + std::to_string(info.numel) +
                  " entries, got " + std::to_string(t.numel()));
-        p.data.push_back(t.data_ptr<T>());
+        const T *data = t.data_ptr<T>();
+        for (int64_t k = 0; k < t.numel(); ++k) {
+            if (!std::isfinite(data[k]))
+                fail("parameter '" + info.name + "' has a non-finite value (" +
+                     std::to_string(data[k]) + ") at entry " + std::to_string(k) +
+                     " of shape " + std::string(c10::str(t.sizes())) +
+                     ": parameters, emission and texels must be finite");
+        }
+        p.data.push_back(data);
         p.numel.push_back(t.numel());
     }
     return p;
+}
+
+/// Report samples the integrator dropped for a non-finite value as a RuntimeWarning (an
+/// error under `warnings.simplefilter("error")`). Call with the GIL held.
+void warn_nonfinite(uint64_t dropped, uint64_t total, const char *pass) {
+    if (dropped == 0) return;
+    std::string message = "torch_rbpt: " + std::to_string(dropped) + " of " + std::to_string(total) +
+                          " " + pass + " samples had a non-finite value (NaN or infinite) and were dropped";
+    if (PyErr_WarnEx(PyExc_RuntimeWarning, message.c_str(), 1) < 0) throw py::error_already_set();
 }
 
 /// Below this many paths a render runs on the calling thread alone: waking the pool costs
@@ -159,6 +178,8 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
                            const std::vector<torch::Tensor> &params, RenderRequest req,
                            uint64_t *rays) {
     req.rays = rays;
+    uint64_t dropped = 0;
+    req.nonfinite = &dropped;
     RenderContext<RGB<T>> ctx(scene, bind_params<T>(scene, params));
     auto dtype = std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64;
     torch::Tensor out = torch::empty({req.row_end - req.row_begin, cam.crop_width, 3},
@@ -169,6 +190,7 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
         int64_t paths = int64_t(req.row_end - req.row_begin) * cam.crop_width * req.spp;
         render_fwd(ctx, cam, cfg, req, data, torch_pool(paths));
     }
+    warn_nonfinite(dropped, uint64_t(req.row_end - req.row_begin) * cam.crop_width * req.spp, "image");
     return out;
 }
 
@@ -217,10 +239,14 @@ std::vector<std::optional<torch::Tensor>> render_bwd_typed(
     }
     const T *dL = adjoint.data_ptr<T>();
     int64_t paths = adjoint.ne(0).any(-1).sum().item<int64_t>() * req.spp;
+    uint64_t dropped = 0;
+    RenderRequest r = req;
+    r.nonfinite = &dropped;
     {
         py::gil_scoped_release release;
-        render_bwd(scene, values, cam, cfg, req, dL, grads, torch_pool(paths));
+        render_bwd(scene, values, cam, cfg, r, dL, grads, torch_pool(paths));
     }
+    warn_nonfinite(dropped, uint64_t(cam.crop_height) * cam.crop_width * req.spp, "backward");
     return out;
 }
 
@@ -272,10 +298,14 @@ py::tuple render_jvp_typed(const Scene &scene, const Camera &cam, const Integrat
     torch::Tensor image = torch::empty({cam.crop_height, cam.crop_width, 3}, opts);
     torch::Tensor tangent = torch::empty({cam.crop_height, cam.crop_width, 3}, opts);
     T *pi = image.data_ptr<T>(), *pt = tangent.data_ptr<T>();
+    uint64_t dropped = 0;
+    RenderRequest r = req;
+    r.nonfinite = &dropped;
     {
         py::gil_scoped_release release;
-        render_jvp(ctx, cam, cfg, req, pi, pt, torch_pool(int64_t(cam.crop_height) * cam.crop_width * req.spp));
+        render_jvp(ctx, cam, cfg, r, pi, pt, torch_pool(int64_t(cam.crop_height) * cam.crop_width * req.spp));
     }
+    warn_nonfinite(dropped, uint64_t(cam.crop_height) * cam.crop_width * req.spp, "forward-mode");
     return py::make_tuple(image, tangent);
 }
 

@@ -1,11 +1,5 @@
-// The perspective sensor and its film: pixel -> ray, with the reconstruction filter applied by
-// importance sampling it (filter importance sampling).
-//
-// Unlike Mitsuba, which splats every sample into all pixels under the filter and divides by the
-// summed weights, each pixel here draws its own sample positions with density proportional to
-// the filter (truncated to the film, as Mitsuba's weights are) and averages them. Both converge
-// to the same filtered image; ours keeps pixels independent, which makes rendering and its
-// adjoint embarrassingly parallel and deterministic.
+// The perspective sensor and its film geometry: pixel -> ray, and the reconstruction filter
+// whose weights splat each sample into the pixels around it (as Mitsuba's film does).
 #pragma once
 
 #include <array>
@@ -23,16 +17,15 @@ struct Filter {
     FilterType type = FilterType::Box;
     float radius = 0.5f;
     float stddev = 0.5f;
-    /// Gaussian only: CDF of the truncated filter tabulated on `Resolution` equal bins.
-    static constexpr int Resolution = 512;
-    std::vector<float> cdf;
 
     /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias).
     float eval(float x) const;
-    /// Build the sampling table; call after setting type, radius and stddev.
-    void prepare();
-    /// An offset in [-radius, radius] distributed proportionally to eval().
-    float sample(float u) const;
+    /// The largest border() the film handles (radius 16.5 pixels).
+    static constexpr int MaxBorder = 16;
+    /// How many pixels a sample's splat reaches on each side of the pixel it lies in.
+    int border() const {
+        return type == FilterType::Box ? 0 : std::max(0, int(std::ceil(radius - 0.5f)));
+    }
 };
 
 struct Camera {
@@ -59,24 +52,24 @@ struct Camera {
         return ray;
     }
 
-    /// A filter-distributed sample position for pixel (px, py) of the full film; positions are
-    /// kept inside the crop window like Mitsuba's sample positions (by rejection).
+    /// A sample position uniformly distributed in pixel (px, py) of the full film.
     Vec2 sample_position(int px, int py, Sampler &sampler) const {
         Vec2 u = sampler.next_2d();
-        if (filter.type == FilterType::Box) return {px + u.x, py + u.y};
-        return {sample_axis(px, crop_x, crop_x + crop_width, u.x, sampler),
-                sample_axis(py, crop_y, crop_y + crop_height, u.y, sampler)};
+        return {float(px) + u.x, float(py) + u.y};
     }
 
-private:
-    float sample_axis(int p, int lo, int hi, float u, Sampler &sampler) const {
-        float center = float(p) + 0.5f;
-        for (int attempt = 0; attempt < 16; ++attempt) {
-            float x = center + filter.sample(u);
-            if (x >= float(lo) && x < float(hi)) return x;
-            u = sampler.next_1d();
+    /// Filter weights of a sample at film position `pos` taken in pixel (px, py), for the
+    /// 2b + 1 pixels px - b .. px + b (and likewise in y), b = filter.border().
+    void splat_weights(Vec2 pos, int px, int py, float *wx, float *wy) const {
+        int b = filter.border();
+        if (b == 0) {  // box: the sample's own pixel only
+            wx[0] = wy[0] = 1.f;
+            return;
         }
-        return center;
+        for (int k = -b; k <= b; ++k) {
+            wx[k + b] = filter.eval(float(px + k) + 0.5f - pos.x);
+            wy[k + b] = filter.eval(float(py + k) + 0.5f - pos.y);
+        }
     }
 };
 

@@ -62,29 +62,30 @@ struct Params<RGB<T>> {
 
 /// Reverse mode: parameters that require gradients are read as custom nodes whose backward
 /// step adds the incoming adjoint into this worker's gradient buffer (`grad`, one per
-/// parameter; nullptr for constants, which record nothing).
+/// parameter; nullptr for constants, which record nothing). Buffers are double whatever T is:
+/// a float sum stops growing once it is 2^24 times the terms added to it.
 template <typename T>
 struct Params<Var<T>> {
     std::vector<const T *> data;
     std::vector<int64_t> numel;
-    std::vector<T *> grad;
+    std::vector<double *> grad;
 
     Var<T> spectrum(int p) const {
         RGB<T> v = Params<RGB<T>>::value_of(data[p], numel[p]);
-        T *g = grad[p];
+        double *g = grad[p];
         if (!g) return Var<T>(v);
         if (numel[p] == 1)
-            return Var<T>(Var<T>(v), [g](const RGB<T> &d) { g[0] += d[0] + d[1] + d[2]; });
+            return Var<T>(Var<T>(v), [g](const RGB<T> &d) {
+                g[0] += double(d[0]) + double(d[1]) + double(d[2]);
+            });
         return Var<T>(Var<T>(v), [g](const RGB<T> &d) {
-            g[0] += d[0];
-            g[1] += d[1];
-            g[2] += d[2];
+            for (int c = 0; c < 3; ++c) g[c] += double(d[c]);
         });
     }
     Var<T> real(int p) const { return spectrum(p); }
     Var<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
         RGB<T> v = Params<RGB<T>>::gather(data[p], channels, index, weight, n);
-        T *g = grad[p];
+        double *g = grad[p];
         if (!g) return Var<T>(v);
         // Scatter the adjoint to the (up to) four texels, weighted as in the lookup.
         struct Texels {
@@ -94,12 +95,12 @@ struct Params<Var<T>> {
         } t{{index[0], index[1], index[2], index[3]}, {weight[0], weight[1], weight[2], weight[3]}, n, channels};
         return Var<T>(Var<T>(v), [g, t](const RGB<T> &d) {
             for (int k = 0; k < t.n; ++k) {
-                T w = T(t.weight[k]);
-                T *texel = g + t.index[k] * t.channels;
+                double w = double(t.weight[k]);
+                double *texel = g + t.index[k] * t.channels;
                 if (t.channels == 1) {
-                    texel[0] += w * (d[0] + d[1] + d[2]);
+                    texel[0] += w * (double(d[0]) + double(d[1]) + double(d[2]));
                 } else {
-                    for (int c = 0; c < 3; ++c) texel[c] += w * d[c];
+                    for (int c = 0; c < 3; ++c) texel[c] += w * double(d[c]);
                 }
             }
         });

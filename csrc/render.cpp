@@ -6,113 +6,247 @@ namespace rbpt {
 
 namespace {
 
-constexpr int64_t TileSize = 16;  // pixels per work item
-
-/// Pixel i of the requested rows, in film coordinates.
-struct PixelIndexer {
-    const Camera &camera;
-    const RenderRequest &req;
-    int64_t width;
-    void locate(int64_t i, int *px, int *py, uint64_t *key) const {
-        *px = camera.crop_x + int(i % width);
-        *py = camera.crop_y + req.row_begin + int(i / width);
-        *key = uint64_t(*py) * uint64_t(camera.film_width) + uint64_t(*px);
-    }
+/// Square tiles of the crop window, the unit of work. Tiles are numbered from the crop
+/// window's corner whatever rows a render asks for, so a band of rows sums every pixel's
+/// splats in the same order as the whole image does.
+struct Tiles {
+    int size = 16;   ///< edge in pixels, at least twice the filter border
+    int nx = 0, ny = 0;
 };
 
-/// Trace one filter-distributed camera path through pixel (px, py): sample s of its stream.
+Tiles tiles_of(const Camera &camera) {
+    Tiles t;
+    t.size = std::max(16, 2 * camera.filter.border());
+    t.nx = (camera.crop_width + t.size - 1) / t.size;
+    t.ny = (camera.crop_height + t.size - 1) / t.size;
+    return t;
+}
+
+/// Rows of the crop window whose samples a render traces: the requested rows widened by the
+/// filter border (their splats reach the requested rows), clipped to the window.
+struct RowRange {
+    int begin, end;
+};
+
+RowRange requested_rows(const Camera &camera, const RenderRequest &req) {
+    return {req.row_begin, req.row_end < 0 ? camera.crop_height : req.row_end};
+}
+
+RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
+    RowRange out = requested_rows(camera, req);
+    int b = camera.filter.border();
+    return {std::max(0, out.begin - b), std::min(camera.crop_height, out.end + b)};
+}
+
+/// Run tile(tx, ty) for every tile meeting rows [rows.begin, rows.end) of the crop window, in
+/// four phases by the parity of (tx, ty). Within a phase no two tiles' splats reach the same
+/// pixel (tiles are at least two borders wide), so tiles of a phase run in parallel without
+/// locks, and every pixel receives its splats in the same order for any number of threads.
+template <typename F>
+void for_each_tile_phased(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
+    int ty_begin = rows.begin / tiles.size, ty_end = (rows.end + tiles.size - 1) / tiles.size;
+    for (int phase = 0; phase < 4; ++phase) {
+        int ox = phase & 1, oy = phase >> 1;
+        int nx = (tiles.nx - ox + 1) / 2;
+        int ty0 = ty_begin + ((ty_begin & 1) != oy);  // first tile row of this parity
+        int ny = ty0 < ty_end ? (ty_end - ty0 + 1) / 2 : 0;
+        int64_t n = int64_t(nx) * ny;
+        if (n == 0) continue;
+        std::atomic<int64_t> next{0};
+        pool.run([&] {
+            for (int64_t k = next++; k < n; k = next++)
+                tile(ox + 2 * int(k % nx), ty0 + 2 * int(k / nx));
+        });
+    }
+}
+
+/// Pixels of tile (tx, ty) within `rows`, in film coordinates: f(px, py, key) for each.
+template <typename F>
+void for_each_pixel_of_tile(const Camera &camera, const Tiles &tiles, RowRange rows, int tx,
+                            int ty, F pixel) {
+    int x0 = tx * tiles.size, x1 = std::min(camera.crop_width, x0 + tiles.size);
+    int y0 = std::max(rows.begin, ty * tiles.size);
+    int y1 = std::min(rows.end, (ty + 1) * tiles.size);
+    for (int y = y0; y < y1; ++y) {
+        for (int x = x0; x < x1; ++x) {
+            int px = camera.crop_x + x, py = camera.crop_y + y;
+            pixel(px, py, uint64_t(py) * uint64_t(camera.film_width) + uint64_t(px));
+        }
+    }
+}
+
+/// Trace the camera path of a sample at film position `pos`, continuing `sampler`'s stream.
 template <typename S>
-S trace_sample(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
-               uint64_t seed, int px, int py, uint64_t key, int s) {
-    Sampler sampler(seed, key, uint64_t(s));
-    Vec2 pos = camera.sample_position(px, py, sampler);
+S trace(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
+        Vec2 pos, Sampler &sampler) {
     float tmin;
     Ray ray = camera.ray_at(pos.x, pos.y, &tmin);
     ray.tmin = tmin;
     return li(ctx, cfg, ray, sampler);
 }
 
-int row_end_of(const Camera &camera, const RenderRequest &req) {
-    return req.row_end < 0 ? camera.crop_height : req.row_end;
+/// Whether a sample's value (and tangent, for dual numbers) is finite.
+template <typename T>
+bool sample_is_finite(const RGB<T> &L) {
+    return SpectrumTraits<RGB<T>>::is_finite(L);
+}
+template <typename T>
+bool sample_is_finite(const Dual<T> &L) {
+    return SpectrumTraits<RGB<T>>::is_finite(L.v) && SpectrumTraits<RGB<T>>::is_finite(L.d);
 }
 
-/// Run `pixel(i)` for every pixel of the request, tiles handed out dynamically.
-template <typename F>
-void for_each_pixel_dynamic(int64_t n_pixels, const WorkerPool &pool, std::atomic<uint64_t> &rays,
-                            F pixel) {
-    int64_t n_tiles = (n_pixels + TileSize - 1) / TileSize;
-    std::atomic<int64_t> next_tile{0};
-    pool.run([&] {
-        uint64_t rays_before = rays_traced;
-        for (int64_t tile = next_tile++; tile < n_tiles; tile = next_tile++) {
-            int64_t end = std::min(n_pixels, (tile + 1) * TileSize);
-            for (int64_t i = tile * TileSize; i < end; ++i) pixel(i);
+/// Weighted sums of the samples splatted into one pixel (value, and tangent for dual numbers).
+struct PixelSum {
+    RGB<double> value, tangent;
+    double weight = 0.0;
+};
+
+template <typename T>
+void add_weighted(PixelSum &sum, double w, const RGB<T> &L) {
+    for (int c = 0; c < 3; ++c) sum.value[c] += w * double(L[c]);
+}
+template <typename T>
+void add_weighted(PixelSum &sum, double w, const Dual<T> &L) {
+    for (int c = 0; c < 3; ++c) {
+        sum.value[c] += w * double(L.v[c]);
+        sum.tangent[c] += w * double(L.d[c]);
+    }
+}
+
+/// The film of one render: a PixelSum per pixel of the requested rows.
+class Film {
+public:
+    Film(const Camera &camera, RowRange rows)
+        : camera_(camera), rows_(rows), sums_(size_t(rows.end - rows.begin) * camera.crop_width) {}
+
+    /// Splat a sample taken in pixel (px, py) at `pos` (film coordinates); with L null, only
+    /// its weights (for the backward pass's normalisation).
+    template <typename S>
+    void splat(int px, int py, Vec2 pos, const S *L) {
+        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
+        camera_.splat_weights(pos, px, py, wx, wy);
+        int b = camera_.filter.border();
+        for (int j = -b; j <= b; ++j) {
+            int y = py - camera_.crop_y + j;
+            if (y < rows_.begin || y >= rows_.end || wy[j + b] == 0.f) continue;
+            for (int i = -b; i <= b; ++i) {
+                int x = px - camera_.crop_x + i;
+                if (x < 0 || x >= camera_.crop_width || wx[i + b] == 0.f) continue;
+                PixelSum &sum = sums_[size_t(y - rows_.begin) * camera_.crop_width + x];
+                double w = double(wx[i + b]) * double(wy[j + b]);
+                sum.weight += w;
+                if (L) add_weighted(sum, w, *L);
+            }
         }
+    }
+
+    /// Pixel i (row-major over the requested rows).
+    const PixelSum &operator[](size_t i) const { return sums_[i]; }
+    size_t size() const { return sums_.size(); }
+
+private:
+    const Camera &camera_;
+    RowRange rows_;
+    std::vector<PixelSum> sums_;
+};
+
+/// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
+/// splats reach them) and splat them into `film`.
+template <typename S>
+void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
+                   const RenderRequest &req, const WorkerPool &pool, Film &film) {
+    Tiles tiles = tiles_of(camera);
+    std::atomic<uint64_t> rays{0}, nonfinite{0};
+    for_each_tile_phased(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
+        uint64_t rays_before = rays_traced, dropped = 0;
+        for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
+                               [&](int px, int py, uint64_t key) {
+            for (int s = 0; s < req.spp; ++s) {
+                Sampler sampler(req.seed, key, uint64_t(s));
+                Vec2 pos = camera.sample_position(px, py, sampler);
+                S L = trace(ctx, camera, cfg, pos, sampler);
+                // Drop a non-finite sample rather than poisoning its pixels, and count it.
+                if (!sample_is_finite(L)) {
+                    ++dropped;
+                    continue;
+                }
+                film.splat(px, py, pos, &L);
+            }
+        });
         rays += rays_traced - rays_before;
-    });
-}
-
-/// Average the finite samples (`keep`) of every requested pixel; store(i, mean) writes pixel i.
-template <typename S, typename Keep, typename Store>
-void average_pixels(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
-                    const RenderRequest &req, const WorkerPool &pool, Keep keep, Store store) {
-    using T = real_t<S>;
-    PixelIndexer at{camera, req, camera.crop_width};
-    int64_t n_pixels = int64_t(row_end_of(camera, req) - req.row_begin) * at.width;
-    T inv_spp = T(1) / T(req.spp);
-    std::atomic<uint64_t> rays{0};
-    for_each_pixel_dynamic(n_pixels, pool, rays, [&](int64_t i) {
-        int px, py;
-        uint64_t key;
-        at.locate(i, &px, &py, &key);
-        S sum(T(0));
-        for (int s = 0; s < req.spp; ++s) {
-            S L = trace_sample(ctx, camera, cfg, req.seed, px, py, key, s);
-            // Drop non-finite samples rather than poisoning the pixel.
-            if (keep(L)) sum += L;
-        }
-        store(i, sum * inv_spp);
+        nonfinite += dropped;
     });
     if (req.rays) *req.rays = rays;
+    if (req.nonfinite) *req.nonfinite = nonfinite;
 }
+
+double safe_div(double a, double b) { return b > 0.0 ? a / b : 0.0; }
 
 }  // namespace
 
 template <typename S>
 void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
                 const RenderRequest &req, real_t<S> *out, const WorkerPool &pool) {
-    average_pixels(
-        ctx, camera, cfg, req, pool, [](const S &L) { return SpectrumTraits<S>::is_finite(L); },
-        [&](int64_t i, const S &mean) {
-            for (int c = 0; c < 3; ++c) out[3 * i + c] = mean[c];
-        });
+    Film film(camera, requested_rows(camera, req));
+    splat_samples(ctx, camera, cfg, req, pool, film);
+    for (size_t i = 0; i < film.size(); ++i)
+        for (int c = 0; c < 3; ++c) out[3 * i + c] = real_t<S>(safe_div(film[i].value[c], film[i].weight));
 }
 
 template <typename T>
 void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, T *out, T *out_tangent,
                 const WorkerPool &pool) {
-    average_pixels(
-        ctx, camera, cfg, req, pool,
-        [](const Dual<T> &L) {
-            return SpectrumTraits<Dual<T>>::is_finite(L) && SpectrumTraits<RGB<T>>::is_finite(L.d);
-        },
-        [&](int64_t i, const Dual<T> &mean) {
-            for (int c = 0; c < 3; ++c) {
-                out[3 * i + c] = mean.v[c];
-                out_tangent[3 * i + c] = mean.d[c];
-            }
-        });
+    Film film(camera, requested_rows(camera, req));
+    splat_samples(ctx, camera, cfg, req, pool, film);
+    for (size_t i = 0; i < film.size(); ++i) {
+        for (int c = 0; c < 3; ++c) {
+            out[3 * i + c] = T(safe_div(film[i].value[c], film[i].weight));
+            out_tangent[3 * i + c] = T(safe_div(film[i].tangent[c], film[i].weight));
+        }
+    }
 }
 
 template <typename T>
 void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, const T *adjoint,
                 const std::vector<T *> &grads, const WorkerPool &pool) {
-    PixelIndexer at{camera, req, camera.crop_width};
-    int64_t n_pixels = int64_t(row_end_of(camera, req) - req.row_begin) * at.width;
-    int64_t n_tiles = (n_pixels + TileSize - 1) / TileSize;
-    // One gradient buffer per worker, covering the differentiated parameters.
+    // The image is sum_s w_p(x_s) L_s / W_p with W_p = sum_s w_p(x_s), so the adjoint of
+    // sample s is sum_p w_p(x_s) adjoint_p / W_p: a gather with the splat's weights. W_p is
+    // the weight sum of the backward pass's own samples (their positions cost no tracing).
+    RowRange all{0, camera.crop_height};
+    Tiles tiles = tiles_of(camera);
+    Film weights(camera, all);
+    for_each_tile_phased(tiles, all, pool, [&](int tx, int ty) {
+        for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
+            for (int s = 0; s < req.spp; ++s) {
+                Sampler sampler(req.seed, key, uint64_t(s));
+                weights.splat<RGB<T>>(px, py, camera.sample_position(px, py, sampler), nullptr);
+            }
+        });
+    });
+    size_t n_pixels = weights.size();
+    std::vector<RGB<double>> scaled(n_pixels);  // adjoint_p / W_p
+    for (size_t i = 0; i < n_pixels; ++i)
+        for (int c = 0; c < 3; ++c) scaled[i][c] = safe_div(double(adjoint[3 * i + c]), weights[i].weight);
+    int b = camera.filter.border();
+    auto gather = [&](int px, int py, Vec2 pos) {
+        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
+        camera.splat_weights(pos, px, py, wx, wy);
+        RGB<double> dL;
+        for (int j = -b; j <= b; ++j) {
+            int y = py - camera.crop_y + j;
+            if (y < 0 || y >= camera.crop_height || wy[j + b] == 0.f) continue;
+            for (int i = -b; i <= b; ++i) {
+                int x = px - camera.crop_x + i;
+                if (x < 0 || x >= camera.crop_width || wx[i + b] == 0.f) continue;
+                dL += scaled[size_t(y) * camera.crop_width + x] * (double(wx[i + b]) * wy[j + b]);
+            }
+        }
+        return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
+    };
+
+    // One double gradient buffer per worker, covering the differentiated parameters.
     size_t n_params = values.data.size();
     std::vector<size_t> offset(n_params, 0);
     size_t total = 0;
@@ -121,17 +255,16 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         if (grads[p]) total += size_t(values.numel[p]);
     }
     int n_workers = std::max(1, pool.workers);
-    std::vector<std::vector<T>> buffers(n_workers);
+    int n_tiles = tiles.nx * tiles.ny;
+    std::vector<std::vector<double>> buffers(n_workers);
     std::atomic<int> next_worker{0};
-    std::atomic<uint64_t> rays{0};
-    T inv_spp = T(1) / T(req.spp);
-
+    std::atomic<uint64_t> rays{0}, nonfinite{0};
     pool.run([&] {
         int w = next_worker++;
         if (w >= n_workers) return;
-        uint64_t rays_before = rays_traced;
-        std::vector<T> &buffer = buffers[w];
-        buffer.assign(total, T(0));
+        uint64_t rays_before = rays_traced, dropped = 0;
+        std::vector<double> &buffer = buffers[w];
+        buffer.assign(total, 0.0);
         Params<Var<T>> params;
         params.data = values.data;
         params.numel = values.numel;
@@ -141,37 +274,42 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         RenderContext<Var<T>> ctx(scene, params);
         // Static, interleaved tiles: worker w always sums the same paths in the same order,
         // so gradients are bitwise reproducible for a given number of workers.
-        for (int64_t tile = w; tile < n_tiles; tile += n_workers) {
-            int64_t end = std::min(n_pixels, (tile + 1) * TileSize);
-            for (int64_t i = tile * TileSize; i < end; ++i) {
-                RGB<T> dL(adjoint[3 * i], adjoint[3 * i + 1], adjoint[3 * i + 2]);
-                if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) continue;
-                dL = dL * inv_spp;
-                int px, py;
-                uint64_t key;
-                at.locate(i, &px, &py, &key);
+        for (int tile = w; tile < n_tiles; tile += n_workers) {
+            for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
+                                   [&](int px, int py, uint64_t key) {
                 for (int s = 0; s < req.spp; ++s) {
-                    // Re-trace a path recording only what depends on differentiated
-                    // parameters, then push the pixel's adjoint back along it.
+                    Sampler sampler(req.seed, key, uint64_t(s));
+                    Vec2 pos = camera.sample_position(px, py, sampler);
+                    RGB<T> dL = gather(px, py, pos);
+                    if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) continue;
+                    // Re-trace the path recording only what depends on differentiated
+                    // parameters, then push the sample's adjoint back along it.
                     tape_reset<T>();
-                    Var<T> L = trace_sample(ctx, camera, cfg, req.seed, px, py, key, s);
-                    if (SpectrumTraits<Var<T>>::is_finite(L)) L.backward(dL);
+                    Var<T> L = trace(ctx, camera, cfg, pos, sampler);
+                    if (SpectrumTraits<Var<T>>::is_finite(L)) {
+                        L.backward(dL);
+                    } else {
+                        ++dropped;
+                    }
                 }
-            }
+            });
         }
         tape_reset<T>();
         rays += rays_traced - rays_before;
+        nonfinite += dropped;
     });
     // Reduce the workers' buffers in worker order.
     for (size_t p = 0; p < n_params; ++p) {
         if (!grads[p]) continue;
-        for (int w = 0; w < n_workers; ++w) {
-            if (buffers[w].empty()) continue;
-            const T *b = buffers[w].data() + offset[p];
-            for (int64_t k = 0; k < values.numel[p]; ++k) grads[p][k] += b[k];
+        for (int64_t k = 0; k < values.numel[p]; ++k) {
+            double g = double(grads[p][k]);
+            for (int w = 0; w < n_workers; ++w)
+                if (!buffers[w].empty()) g += buffers[w][offset[p] + size_t(k)];
+            grads[p][k] = T(g);
         }
     }
     if (req.rays) *req.rays = rays;
+    if (req.nonfinite) *req.nonfinite = nonfinite;
 }
 
 template void render_fwd<RGB<float>>(const RenderContext<RGB<float>> &, const Camera &,

@@ -1,9 +1,13 @@
-// The render loops: every pixel of the crop window (or a band of its rows) averages `spp`
-// filter-importance-sampled paths. Pixels are independent and each has its own random
-// stream, so images do not depend on the number of threads or on scheduling.
+// The render loops. Every pixel of the crop window traces `spp` paths from positions uniform
+// in the pixel, each with its own random stream (seed, pixel, sample); like Mitsuba's film,
+// every sample is splatted with the reconstruction filter's weights into all pixels around
+// it, and a pixel is its weighted sum of samples over its sum of weights. Splats are summed
+// in double precision in an order fixed by the image, not by the threads, so an image is
+// bitwise identical for any number of threads.
 //   render_fwd: the image, for S = RGB<float> / RGB<double>;
-//   render_bwd: radiative backpropagation: re-trace paths from the camera with the tape type
-//               Var<T>, each carrying its pixel's adjoint, and accumulate parameter gradients;
+//   render_bwd: radiative backpropagation: re-trace independent paths from the camera with the
+//               tape type Var<T>, each carrying the adjoint its splat gathers from the pixels
+//               it reaches (the transpose of the splat), and accumulate parameter gradients;
 //   render_jvp: the image and its directional derivative, with the dual type Dual<T>.
 #pragma once
 
@@ -19,6 +23,9 @@ struct RenderRequest {
     uint64_t seed = 0;
     int row_begin = 0, row_end = -1;  ///< rows of the crop window to render (-1: all)
     uint64_t *rays = nullptr;         ///< if set, receives the number of rays traced
+    /// If set, receives the number of samples dropped because their value was not finite
+    /// (NaN or infinite radiance arising inside the integrator).
+    uint64_t *nonfinite = nullptr;
 };
 
 /// Runs the given job once on each of `workers()` threads of the caller's pool and waits.
@@ -36,8 +43,9 @@ void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const Integra
 /// Accumulate into grads[p] (nullptr: not differentiated) the gradient of
 /// sum(adjoint * image) with respect to parameter p, estimated with paths traced from
 /// req.seed (independent of the forward pass unless the caller reuses its seed). `adjoint`
-/// is (crop_height, crop_width, 3); pixels whose adjoint is zero trace nothing. The result is
-/// deterministic for a given pool size.
+/// is (crop_height, crop_width, 3); samples whose splat reaches only zero adjoints trace
+/// nothing. Gradients are summed in double precision; the result is deterministic for a given
+/// pool size.
 template <typename T>
 void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, const T *adjoint,
