@@ -478,6 +478,7 @@ struct SpectrumTraits<Var<T>> {
     using Real = Var<T>;  ///< scalars are RGB with equal channels
     static Color3f detach(const Var<T> &s) { return SpectrumTraits<RGB<T>>::detach(s.value()); }
     static bool is_finite(const Var<T> &s) { return SpectrumTraits<RGB<T>>::is_finite(s.value()); }
+    static bool has_derivative(const Var<T> &s) { return s.requires_grad(); }
 };
 
 /// Value of a scalar Var (its first channel), without derivatives.

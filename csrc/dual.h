@@ -166,6 +166,9 @@ struct SpectrumTraits<Dual<T>> {
     static Color3f detach(const Dual<T> &s) { return SpectrumTraits<RGB<T>>::detach(s.v); }
     /// Whether the value is finite (as Var: the render loop drops the same samples).
     static bool is_finite(const Dual<T> &s) { return SpectrumTraits<RGB<T>>::is_finite(s.v); }
+    static bool has_derivative(const Dual<T> &s) {
+        return s.d[0] != T(0) || s.d[1] != T(0) || s.d[2] != T(0);
+    }
 };
 
 /// Value of a scalar Dual (its first channel), without derivatives.

@@ -26,16 +26,37 @@ inline float mis_weight(float a, float b) {
     return std::isfinite(w) ? w : 0.f;
 }
 
+/// Highest survival probability of Russian roulette: keeps paths finite in closed scenes of
+/// unit albedo while leaving the variance bounded for any albedo below ~0.99995.
+constexpr float MaxSurvival = 0.9999f;
+
 template <typename S>
 inline bool is_zero(const S &s) {
     Color3f c = detach(s);
     return c[0] == 0.f && c[1] == 0.f && c[2] == 0.f;
 }
 
+/// Whether a factor makes every later contribution vanish, derivatives included: zero and
+/// carrying no derivative. (A zero parameter still has a derivative; its paths go on.)
+template <typename S>
+inline bool is_null(const S &s) {
+    return is_zero(s) && !SpectrumTraits<S>::has_derivative(s);
+}
+
+/// The detached throughput factor that Russian roulette sees for a sample weight: its value,
+/// or 1 where the value is zero but carries a derivative (so the derivative's path survives
+/// as if the parameter were 1; any positive survival probability keeps it unbiased).
+template <typename S>
+inline Color3f roulette_factor(const S &weight) {
+    return is_null(weight) || !is_zero(weight) ? detach(weight) : Color3f(1.f);
+}
+
 template <typename S>
 S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
     const Scene &scene = ctx.scene;
     S L(0.f), beta(1.f);
+    if (cfg.max_depth == 0) return L;  // as Mitsuba: no vertex at all, not even emitters seen
+    Color3f beta_rr(1.f);  // detached throughput for roulette (see roulette_factor)
     float eta = 1.f, prev_pdf = 1.f;
     bool prev_delta = true;
     Vec3 prev_p;
@@ -59,7 +80,7 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         // Sample an emitter and add its MIS-weighted direct illumination.
         if (bsdf.smooth()) {
             auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
-            if (es && !is_zero(es->weight)) {
+            if (es && !is_null(es->weight)) {
                 Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
                 if (!scene.occluded(shadow)) {
                     Vec3 wo = si.to_local(es->d);
@@ -77,19 +98,23 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
         if (!bs) break;
         beta *= bs->weight;
+        beta_rr *= roulette_factor(bs->weight);
         eta *= bs->eta;
         prev_p = si.p;
         prev_pdf = bs->pdf;
         prev_delta = bs->delta;
         ray = si.spawn_ray(si.to_world(bs->wo));
 
-        // Possibly terminate the path with Russian roulette.
-        float beta_max = max_component(detach(beta));
+        // Possibly terminate the path with Russian roulette. The survival probability is the
+        // roulette throughput itself (capped just below 1), so a surviving path's weight
+        // stays bounded by its BSDF weights: no growth at high albedo.
+        float beta_max = max_component(beta_rr);
         if (!(beta_max > 0.f)) break;
         if (depth + 1 >= cfg.rr_depth) {
-            float q = std::min(beta_max * eta * eta, 0.95f);
+            float q = std::min(beta_max * eta * eta, MaxSurvival);
             if (sampler.next_1d() >= q) break;
             beta = beta * real_t<S>(1.f / q);
+            beta_rr = beta_rr * (1.f / q);
         }
     }
     return L;
@@ -98,6 +123,7 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
 template <typename S>
 S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
     const Scene &scene = ctx.scene;
+    if (cfg.max_depth == 0) return S(0.f);
     // Find the first surface and add the emission seen directly.
     SurfaceInteraction si = scene.intersect(ray);
     S L(0.f);
@@ -113,7 +139,7 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
     if (bsdf.smooth()) {
         for (int i = 0; i < cfg.emitter_samples; ++i) {
             auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
-            if (!es || is_zero(es->weight)) continue;
+            if (!es || is_null(es->weight)) continue;
             Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
             if (scene.occluded(shadow)) continue;
             Vec3 wo = si.to_local(es->d);

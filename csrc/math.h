@@ -16,7 +16,17 @@ constexpr float InvFourPi = 0.07957747154594766788f;
 constexpr float Infinity = std::numeric_limits<float>::infinity();
 /// Mitsuba's ray epsilon for float: 1500 ulps of 1 (math::RayEpsilon).
 constexpr float RayEpsilon = 1500.f * 5.9604644775390625e-8f;
+/// Shadow rays stop this fraction of their length short of the point they aim at.
 constexpr float ShadowEpsilon = 10.f * RayEpsilon;
+/// Half an ulp of 1 in float: the relative rounding error of one operation.
+constexpr float MachineEpsilon = 5.9604644775390625e-8f;
+
+/// Bound on the relative error of n chained float operations (Higham's gamma_n, as pbrt).
+constexpr float gamma(int n) { return (float(n) * MachineEpsilon) / (1.f - float(n) * MachineEpsilon); }
+
+/// The next float above / below v (for rounding ray origins away from a surface).
+inline float next_float_up(float v) { return std::nextafter(v, Infinity); }
+inline float next_float_down(float v) { return std::nextafter(v, -Infinity); }
 
 struct Vec2 {
     float x = 0, y = 0;
@@ -51,6 +61,7 @@ inline Vec3 vmin(const Vec3 &a, const Vec3 &b) {
 inline Vec3 vmax(const Vec3 &a, const Vec3 &b) {
     return {std::max(a.x, b.x), std::max(a.y, b.y), std::max(a.z, b.z)};
 }
+inline Vec3 vabs(const Vec3 &a) { return {std::abs(a.x), std::abs(a.y), std::abs(a.z)}; }
 inline float max_abs_component(const Vec3 &a) {
     return std::max(std::abs(a.x), std::max(std::abs(a.y), std::abs(a.z)));
 }
@@ -125,6 +136,8 @@ struct SpectrumTraits<RGB<T>> {
     static bool is_finite(const RGB<T> &s) {
         return std::isfinite(s.v[0]) && std::isfinite(s.v[1]) && std::isfinite(s.v[2]);
     }
+    /// Whether the value carries a derivative (never, for plain numbers).
+    static bool has_derivative(const RGB<T> &) { return false; }
 };
 
 template <typename S>

@@ -17,6 +17,7 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         float b1 = hit.u, b2 = hit.v, b0 = 1.f - b1 - b2;
         const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
         si.p = p0 * b0 + p1 * b1 + p2 * b2;
+        si.p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
         si.n = normalize(cross(p1 - p0, p2 - p0));
         if (shape.has_normals) {
             ns = normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b1 + normals[tri.v[2]] * b2);
@@ -36,8 +37,18 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
     } else {
         const Shape &shape = sphere_shape(hit.prim);
         si.shape = int(spheres[hit.prim - triangles.size()]);
-        Vec3 local = normalize(ray.o + ray.d * hit.t - shape.center);
-        si.p = shape.center + local * shape.radius;
+        // Re-project the hit onto the sphere in double precision, so that p is the sphere's
+        // point up to the final rounding (float arithmetic far from the origin is not).
+        double r[3], len2 = 0.0;
+        for (int i = 0; i < 3; ++i) {
+            r[i] = double(ray.o[i]) + double(ray.d[i]) * double(hit.t) - double(shape.center[i]);
+            len2 += r[i] * r[i];
+        }
+        double scale = double(shape.radius) / std::sqrt(len2);
+        for (int i = 0; i < 3; ++i) si.p[i] = float(double(shape.center[i]) + r[i] * scale);
+        si.p_error = gamma(4) * vabs(si.p) + Vec3(1, 1, 1) * (gamma(4) * shape.radius);
+        Vec3 local{float(r[0] * scale), float(r[1] * scale), float(r[2] * scale)};
+        local = normalize(local);
         si.n = local;
         // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
         Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};

@@ -47,6 +47,7 @@ struct SurfaceInteraction {
     bool valid = false;
     float t = Infinity;
     Vec3 p;
+    Vec3 p_error;  ///< bound on the rounding error of each coordinate of p
     Vec3 n;        ///< geometric normal (unit, flipped with flip_normals)
     Frame sh_frame;  ///< shading frame around the interpolated normal
     Vec2 uv;
@@ -56,10 +57,19 @@ struct SurfaceInteraction {
     Vec3 to_local(const Vec3 &v) const { return sh_frame.to_local(v); }
     Vec3 to_world(const Vec3 &v) const { return sh_frame.to_world(v); }
 
-    /// Offset the origin along the geometric normal to the side of `d` (Mitsuba's offset_p).
+    /// A ray origin on the side of `d`: p moved along the geometric normal just past its
+    /// rounding-error box, then rounded away from the surface (pbrt-v4's OffsetRayOrigin).
+    /// Unlike Mitsuba's offset, which grows with the distance from the world origin, this
+    /// follows the actual error of p, so scenes far from the origin keep contact shadows.
     Vec3 offset_p(const Vec3 &d) const {
-        float mag = (1.f + max_abs_component(p)) * RayEpsilon;
-        return p + n * std::copysign(mag, dot(n, d));
+        Vec3 offset = n * dot(vabs(n), p_error);
+        if (dot(n, d) < 0.f) offset = -offset;
+        Vec3 o = p + offset;
+        for (int i = 0; i < 3; ++i) {
+            if (offset[i] > 0.f) o[i] = next_float_up(o[i]);
+            else if (offset[i] < 0.f) o[i] = next_float_down(o[i]);
+        }
+        return o;
     }
     Ray spawn_ray(const Vec3 &d) const {
         Ray r;
@@ -174,6 +184,28 @@ inline int intersect_triangles4(const RayPrecomp4 &pc, const TrianglePack4 &pack
     __m128 inv_det = _mm_div_ps(_mm_set1_ps(1.f), det);
     __m128 t = _mm_mul_ps(T, inv_det);
     int hit = _mm_movemask_ps(_mm_and_ps(_mm_cmpgt_ps(t, _mm_set1_ps(tmin)), _mm_cmplt_ps(t, _mm_set1_ps(tmax)))) & inside;
+    if (!hit) return 0;
+    // Keep only hits farther than the rounding error of t (pbrt-v4's conservative bound), so a
+    // ray leaving a surface from its error-bounded offset origin never finds that surface.
+    const __m128 sign = _mm_set1_ps(-0.f);
+    auto abs3 = [&](const __m128 a[3]) {
+        return _mm_max_ps(_mm_andnot_ps(sign, a[0]), _mm_max_ps(_mm_andnot_ps(sign, a[1]), _mm_andnot_ps(sign, a[2])));
+    };
+    __m128 max_zt = _mm_mul_ps(_mm_andnot_ps(sign, sz), abs3(z)), max_xt = abs3(x), max_yt = abs3(y);
+    __m128 delta_z = _mm_mul_ps(_mm_set1_ps(gamma(3)), max_zt);
+    __m128 delta_x = _mm_mul_ps(_mm_set1_ps(gamma(5)), _mm_add_ps(max_xt, max_zt));
+    __m128 delta_y = _mm_mul_ps(_mm_set1_ps(gamma(5)), _mm_add_ps(max_yt, max_zt));
+    __m128 delta_e = _mm_mul_ps(_mm_set1_ps(2.f),
+                                _mm_add_ps(_mm_mul_ps(_mm_set1_ps(gamma(2)), _mm_mul_ps(max_xt, max_yt)),
+                                           _mm_add_ps(_mm_mul_ps(delta_y, max_xt), _mm_mul_ps(delta_x, max_yt))));
+    __m128 e[3] = {U, V, W};
+    __m128 max_e = abs3(e);
+    __m128 delta_t = _mm_mul_ps(
+        _mm_mul_ps(_mm_set1_ps(3.f),
+                   _mm_add_ps(_mm_mul_ps(_mm_set1_ps(gamma(3)), _mm_mul_ps(max_e, max_zt)),
+                              _mm_add_ps(_mm_mul_ps(delta_e, max_zt), _mm_mul_ps(delta_z, max_e)))),
+        _mm_andnot_ps(sign, inv_det));
+    hit &= _mm_movemask_ps(_mm_cmpgt_ps(t, delta_t));
     if (!hit) return 0;
     _mm_storeu_ps(t_out, t);
     _mm_storeu_ps(u_out, _mm_mul_ps(V, inv_det));
