@@ -220,3 +220,17 @@ def test17_bundled_scene_loads():
     scene = tr.load_file(ROOT / "torch_rbpt/scenes/cornell_box.xml", res=16)
     assert "red.reflectance.value" in scene.params and "light.emitter.radiance.value" in scene.params
     assert torch.isfinite(tr.render(scene, spp=4)).all()
+
+
+def test18_include_cycle_names_the_include_and_the_cycle(tmp_path):
+    a = _write(tmp_path, '<include filename="b.xml"/>', "a.xml")
+    b = _write(tmp_path, '\n<include filename="a.xml"/>', "b.xml")
+    with pytest.raises(tr.SceneError, match=re.escape(f"{b}:3: <include> cycle: {a} -> {b} -> {a}")):
+        tr.load_file(a)
+    me = _write(tmp_path, '<include filename="self.xml"/>', "self.xml")
+    with pytest.raises(tr.SceneError, match=re.escape(f"{me}:2: <include> cycle: {me} -> {me}")):
+        tr.load_file(me)
+    # Including one file twice, side by side, is not a cycle.
+    (tmp_path / "m.xml").write_text('<scene version="3.0.0"><default name="x" value="1"/></scene>')
+    tr.load_file(_write(tmp_path, '<include filename="m.xml"/><include filename="m.xml"/>', "twice.xml"))
+

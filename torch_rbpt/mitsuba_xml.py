@@ -42,6 +42,8 @@ class XMLReader:
         self.defaults: dict[str, str] = {}
         self.search_paths: list[Path] = [self.path.parent]
         self.used_overrides: set[str] = set()
+        # The files being read, outermost first, each with the <include> that opened it.
+        self.include_stack: list[tuple[Path, str]] = [(self.path, "")]
 
     # -- files -------------------------------------------------------------------------------
 
@@ -135,11 +137,14 @@ class XMLReader:
                 if node.get("type") != "scene":
                     raise SceneError(f"{where}: <include> is only allowed directly in <scene>")
                 target = self.resolve(self._attr(child, "filename", where), where, file.parent)
+                self._check_include_cycle(target.resolve(), where)
                 root = self._parse(target)
                 if root.tag != "scene":
                     raise SceneError(f"{target}:{root.sourceline}: an included file must have a "
                                      f"<scene> root, got <{root.tag}>")
+                self.include_stack.append((target.resolve(), where))
                 self._children(root, node, target)
+                self.include_stack.pop()
             elif tag in PLUGIN_TAGS:
                 value = self._plugin(child, file)
                 if node.get("type") == "scene":
@@ -160,6 +165,13 @@ class XMLReader:
             else:
                 raise SceneError(f"{where}: unsupported element <{tag}> (supported: "
                                  f"{', '.join(PLUGIN_TAGS + VALUE_TAGS)}, default, include, path)")
+
+    def _check_include_cycle(self, target: Path, where: str) -> None:
+        files = [f for f, _ in self.include_stack]
+        if target in files:
+            cycle = files[files.index(target):] + [target]
+            raise SceneError(f"{where}: <include> cycle: {' -> '.join(str(f) for f in cycle)} "
+                             f"(a file must not include itself, directly or indirectly)")
 
     @staticmethod
     def _unnamed(scene: dict, type_name: str) -> str:
