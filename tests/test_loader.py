@@ -234,3 +234,18 @@ def test18_include_cycle_names_the_include_and_the_cycle(tmp_path):
     (tmp_path / "m.xml").write_text('<scene version="3.0.0"><default name="x" value="1"/></scene>')
     tr.load_file(_write(tmp_path, '<include filename="m.xml"/><include filename="m.xml"/>', "twice.xml"))
 
+
+def test19_unknown_nested_plugin_lists_the_supported_ones_of_its_kind(tmp_path):
+    bsdfs = "supported: conductor, dielectric, diffuse, roughconductor, roughplastic, twosided"
+    with pytest.raises(tr.SceneError, match=re.escape(f"unsupported bsdf plugin 'plastic' ({bsdfs})")):
+        tr.load_dict({"type": "scene", "s": {"type": "sphere", "bsdf": {"type": "plastic"}}})
+    with pytest.raises(tr.SceneError, match=r"'film': unsupported film plugin 'ldrfilm' \(supported: hdrfilm\)"):
+        tr.load_dict({"type": "scene", "s": {"type": "perspective", "film": {"type": "ldrfilm"}}})
+    # A key that names no kind: all supported plugins are listed.
+    with pytest.raises(tr.SceneError, match=r"unsupported plugin 'plastic' \(supported: area, .*twosided\)"):
+        tr.load_dict({"type": "scene", "s": {"type": "sphere", "mat": {"type": "plastic"}}})
+    # XML: the kind comes from the tag, the location is the nested element's line.
+    path = _write(tmp_path, '<shape type="sphere">\n  <bsdf type="plastic"/>\n</shape>')
+    with pytest.raises(tr.SceneError, match=re.escape(f"{path}:3: sphere: 'bsdf': unsupported bsdf "
+                                                      f"plugin 'plastic' ({bsdfs})")):
+        tr.load_file(path)

@@ -81,6 +81,16 @@ def _is_plugin(value) -> bool:
     return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb",)
 
 
+def _unsupported(node: dict, key: str) -> str:
+    """The message for a plugin of unknown type, listing the supported plugins of its kind
+    (from its XML tag, or its dict key when that names a kind) or all of them."""
+    kind = node.get("__tag__") or key
+    if kind not in CATEGORY.values():
+        return f"unsupported plugin '{node['type']}' (supported: {', '.join(sorted(CATEGORY))})"
+    supported = sorted(k for k, v in CATEGORY.items() if v == kind)
+    return f"unsupported {kind} plugin '{node['type']}' (supported: {', '.join(supported)})"
+
+
 class _Builder:
     def __init__(self, scene: dict, base_dir: Path, dtype: torch.dtype):
         self.search = [base_dir] + list(scene.get("__search__", []))
@@ -130,7 +140,11 @@ class _Builder:
             if key.startswith("__") or key in ("type", "id"):
                 continue
             if _is_plugin(value):
-                cat = CATEGORY.get(self.resolve_ref(value)["type"])
+                target = self.resolve_ref(value)
+                cat = CATEGORY.get(target["type"])
+                if cat is None:
+                    self.fail(target if target.get("__where__") else node,
+                              f"{t}: '{key}': {_unsupported(target, key)}")
                 if key in allowed or cat in nested:
                     continue
                 self.fail(value if value.get("__where__") else node,
@@ -512,7 +526,7 @@ class _Builder:
             if t == "ref":
                 continue
             if cat is None:
-                raise SceneError(f"{_where(value)}: unsupported plugin '{t}' (supported: {', '.join(sorted(CATEGORY))})")
+                raise SceneError(f"{_where(value)}: {_unsupported(value, key)}")
             key = value.get("__id__", key)
             if cat == "shape":
                 self.shape(value, key)
