@@ -249,3 +249,25 @@ def test19_unknown_nested_plugin_lists_the_supported_ones_of_its_kind(tmp_path):
     with pytest.raises(tr.SceneError, match=re.escape(f"{path}:3: sphere: 'bsdf': unsupported bsdf "
                                                       f"plugin 'plastic' ({bsdfs})")):
         tr.load_file(path)
+
+
+@pytest.mark.parametrize("change, pattern", [
+    # Found by fuzz/fuzz_dict.py: each raised TypeError, KeyError, a numpy ValueError or
+    # (for out-of-range ints) a pybind11 RuntimeError at render time.
+    ({"wall": {"type": ["rectangle"]}}, r"'wall': the plugin type must be a string, got list"),
+    ({"wall": {"type": np.array([1.0, 2.0])}}, r"'wall': the plugin type must be a string"),
+    ({"wall": {"type": "rectangle", "bsdf": {"type": {"a": 1}}}}, r"'bsdf': the plugin type must be a string"),
+    ({"red": {"type": "diffuse", "reflectance": {"type": "rgb"}}}, r"'reflectance': an rgb needs a 'value'"),
+    ({"wall": {"type": "rectangle", "bsdf": {"type": "ref", "id": ["red"]}}}, r"a ref needs a string 'id'"),
+    ({"red": {"type": "diffuse", "reflectance": {"type": "rgb", "value": {"x": 1}}}},
+     r"parameter 'reflectance' must be numbers"),
+    ({"red": {"type": "diffuse", "reflectance": [0.5, "x", 0.5]}}, r"diffuse: parameter 'reflectance' must be numbers"),
+    ({"light": {"type": "point", "position": [0, {}, 2]}}, r"point: parameter 'position' must be numbers"),
+    ({"wall": {"type": "rectangle", "to_world": [[{}]]}}, r"rectangle: .*to_world"),
+    ({"integrator": {"type": "path", "max_depth": 2 ** 40}}, r"path: parameter 'max_depth' must fit in 32 bits"),
+    ({"sensor": {"type": "perspective", "sampler": {"type": "independent", "sample_count": 1e300}}},
+     r"independent: parameter 'sample_count' must fit in 32 bits"),
+])
+def test20_dict_values_of_wrong_type_are_scene_errors(change, pattern):
+    with pytest.raises(tr.SceneError, match=r"<dict>: .*" + pattern):
+        tr.load_dict(_dict_box(**change))

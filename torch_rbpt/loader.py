@@ -81,6 +81,22 @@ def _is_plugin(value) -> bool:
     return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb",)
 
 
+def _check_plugin_dicts(node: dict, key: str) -> None:
+    """Check the shape of every dict in a scene tree before it is interpreted: a "type" is a
+    string, an rgb has a "value", a ref has a string "id"."""
+    t = node.get("type")
+    if "type" in node and not isinstance(t, str):
+        raise SceneError(f"{_where(node)}: '{key}': the plugin type must be a string, got "
+                         f"{type(t).__name__} {t!r}")
+    if t == "rgb" and "value" not in node:
+        raise SceneError(f"{_where(node)}: '{key}': an rgb needs a 'value'")
+    if t == "ref" and not isinstance(node.get("id"), str):
+        raise SceneError(f"{_where(node)}: '{key}': a ref needs a string 'id', got {node.get('id')!r}")
+    for name, value in node.items():
+        if isinstance(value, dict) and not str(name).startswith("__"):
+            _check_plugin_dicts(value, name)
+
+
 def _unsupported(node: dict, key: str) -> str:
     """The message for a plugin of unknown type, listing the supported plugins of its kind
     (from its XML tag, or its dict key when that names a kind) or all of them."""
@@ -93,6 +109,7 @@ def _unsupported(node: dict, key: str) -> str:
 
 class _Builder:
     def __init__(self, scene: dict, base_dir: Path, dtype: torch.dtype):
+        _check_plugin_dicts(scene, "scene")
         self.search = [base_dir] + list(scene.get("__search__", []))
         self.dtype = dtype
         self.native = _C.Scene()
@@ -187,9 +204,20 @@ class _Builder:
                 return bool(value)
             if kind is int and isinstance(value, float) and not value.is_integer():
                 raise ValueError
-            return kind(value)
-        except (TypeError, ValueError):
+            result = kind(value)
+        except (TypeError, ValueError, OverflowError):
             self.fail(node, f"{node['type']}: parameter '{name}' must be a {kind.__name__}, got {value!r}")
+        if kind is int and not -2 ** 31 <= result < 2 ** 31:  # the renderer's ints are 32-bit
+            self.fail(node, f"{node['type']}: parameter '{name}' must fit in 32 bits, got {value!r}")
+        return result
+
+    def floats(self, node, name: str, value) -> np.ndarray:
+        """`value` (a number, list, array or tensor) as a flat float64 array."""
+        try:
+            return np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value,
+                              dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError, OverflowError):
+            self.fail(node, f"{node['type']}: parameter '{name}' must be numbers, got {value!r}")
 
     def string(self, node, name: str, default: str, choices=None) -> str:
         value = node.get(name, default)
@@ -210,7 +238,7 @@ class _Builder:
 
     def vector(self, node, name: str, default=None) -> np.ndarray:
         value = node.get(name, default)
-        v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+        v = self.floats(node, name, value)
         if v.shape != (3,):
             self.fail(node, f"{node['type']}: parameter '{name}' needs 3 values, got {v.size}")
         return v
@@ -244,7 +272,7 @@ class _Builder:
             value = self.deref(value, "texture", owner)
             key = value.get("__id__", key)
         if isinstance(value, dict) and value.get("type") == "rgb":
-            v = np.asarray(value["value"], dtype=np.float64).reshape(-1)
+            v = self.floats(value, name, value["value"])
             if v.size == 1:
                 v = np.repeat(v, 3)
             if v.size != 3:
@@ -256,13 +284,13 @@ class _Builder:
             self.fail(value, f"'{name}': unsupported texture '{value.get('type')}' (supported: rgb, "
                              f"bitmap, or a number)")
         if isinstance(value, (torch.Tensor, np.ndarray, list, tuple)):
-            v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+            v = self.floats(owner, name, value)
             if v.size not in (1, 3):
                 self.fail(owner, f"{owner['type']}: '{name}' needs 1 or 3 values, got {v.size}")
             return self.add_param(f"{key}.value", v), -1
         try:
             v = float(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb or bitmap, got {value!r}")
         return self.add_param(f"{key}.value", [v]), -1
 
