@@ -271,3 +271,14 @@ def test19_unknown_nested_plugin_lists_the_supported_ones_of_its_kind(tmp_path):
 def test20_dict_values_of_wrong_type_are_scene_errors(change, pattern):
     with pytest.raises(tr.SceneError, match=r"<dict>: .*" + pattern):
         tr.load_dict(_dict_box(**change))
+
+
+def test21_boolean_parameters_reject_arrays_and_tensors():
+    # Found by fuzz/fuzz_dict.py: a tensor sample_visible raised torch's RuntimeError
+    # "Boolean value of Tensor ... is ambiguous".
+    bsdf = {"type": "roughconductor", "sample_visible": torch.tensor([1.0, 0.0])}
+    with pytest.raises(tr.SceneError, match=r"<dict>: roughconductor: parameter 'sample_visible' must be a bool"):
+        tr.load_dict(_dict_box(red=bsdf))
+    with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: parameter 'flip_normals' must be a bool"):
+        tr.load_dict(_dict_box(wall={"type": "rectangle", "flip_normals": np.array([True, False])}))
+    assert tr.load_dict(_dict_box(red={"type": "roughconductor", "sample_visible": "true"}))

@@ -6,6 +6,7 @@ what is supported.
 """
 from __future__ import annotations
 
+import numbers
 import os
 from pathlib import Path
 
@@ -201,6 +202,8 @@ class _Builder:
                     if value.lower() not in ("true", "false"):
                         raise ValueError
                     return value.lower() == "true"
+                if not isinstance(value, numbers.Real):  # not a list, array or tensor
+                    raise TypeError
                 return bool(value)
             if kind is int and isinstance(value, float) and not value.is_integer():
                 raise ValueError
@@ -342,7 +345,7 @@ class _Builder:
         if t in ("conductor", "roughconductor") and material != "none":
             self.fail(node, f"{t}: material '{material}' is not supported (only 'none', an ideal "
                             f"mirror tinted by specular_reflectance)")
-        if node.get("sample_visible", True) not in (True, "true"):
+        if not self.number(node, "sample_visible", True, bool):
             self.fail(node, f"{t}: only sample_visible=true is supported")
         refl = spec = trans = None
         alpha, dist, eta, nonlinear = -1, "beckmann", 1.0, False
