@@ -282,3 +282,10 @@ def test21_boolean_parameters_reject_arrays_and_tensors():
     with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: parameter 'flip_normals' must be a bool"):
         tr.load_dict(_dict_box(wall={"type": "rectangle", "flip_normals": np.array([True, False])}))
     assert tr.load_dict(_dict_box(red={"type": "roughconductor", "sample_visible": "true"}))
+
+
+def test22_errors_of_the_core_name_the_plugin():
+    # Found by fuzz/fuzz_dict.py: a second constant emitter was a bare ValueError from the
+    # C++ side ("only one constant emitter is supported") without the plugin's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: constant: only one constant emitter is supported"):
+        tr.load_dict(_dict_box(sky={"type": "constant"}, sky2={"type": "constant"}))

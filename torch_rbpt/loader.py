@@ -188,6 +188,13 @@ class _Builder:
         self.params[key] = t
         return self.native.add_param(key, t.numel())
 
+    def add_native(self, node, what: str, *args) -> int:
+        """`self.native.add_<what>(*args)`; the core's ValueErrors are re-raised naming the plugin."""
+        try:
+            return getattr(self.native, f"add_{what}")(*args)
+        except ValueError as e:
+            self.fail(node, f"{node['type']}: {e}")
+
     def add_fixed(self, key: str, value, why: str) -> None:
         """A Mitsuba parameter we expose read-only: editing or differentiating it is an error."""
         self.fixed[key] = (torch.as_tensor(np.asarray(value, dtype=np.float64)).to(self.dtype), why)
@@ -318,7 +325,7 @@ class _Builder:
         self.params[f"{key}.data"] = self.params[f"{key}.data"].reshape(h, w, c)
         filt = self.string(node, "filter_type", "bilinear", ("bilinear", "nearest"))
         wrap = self.string(node, "wrap_mode", "repeat", ("repeat", "mirror", "clamp"))
-        index = self.native.add_bitmap(param, w, h, c, wrap, filt == "nearest")
+        index = self.add_native(node, "bitmap", param, w, h, c, wrap, filt == "nearest")
         self.built_textures[id(node)] = index
         return index
 
@@ -374,7 +381,7 @@ class _Builder:
         if t in ("dielectric", "roughplastic"):
             self.add_fixed(f"{key}.eta", [eta], f"the relative index of refraction (int_ior / ext_ior) "
                                                 f"of a {t} is not differentiable and is fixed at load")
-        index = self.native.add_bsdf(t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
+        index = self.add_native(node, "bsdf", t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
         self.built_bsdfs[id(node)] = index
         return index
 
@@ -402,7 +409,7 @@ class _Builder:
             if not np.allclose(scales, scales[0], rtol=1e-4) or scales[0] <= 0:
                 self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
             frame = (axes / scales).T.tolist()
-            shape = self.native.add_sphere(m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
+            shape = self.add_native(node, "sphere", m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
             self.add_fixed(f"{key}.to_world", m, GEOMETRY)
         else:
             if t in ("obj", "ply"):
@@ -423,7 +430,7 @@ class _Builder:
                 self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
             else:
                 self.add_fixed(f"{key}.vertex_positions", mesh.positions.reshape(-1), GEOMETRY)
-            shape = self.native.add_mesh(
+            shape = self.add_native(node, "mesh",
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
                 None if mesh.uvs is None else torch.from_numpy(mesh.uvs), bsdf, flip)
@@ -438,7 +445,7 @@ class _Builder:
             param, bitmap = self.texture(em, "radiance", f"{ekey}.radiance", None if "radiance" in em else 1.0)
             if bitmap >= 0:
                 self.fail(em, "area: textured radiance is not supported")
-            self.native.add_emitter("area", param, shape, [])
+            self.add_native(em, "emitter", "area", param, shape, [])
 
     def emitter(self, node, key: str) -> None:
         self.check(node, "emitter")
@@ -452,12 +459,12 @@ class _Builder:
             if "to_world" in node:
                 position = self.matrix(node) @ np.append(position, 1.0)
             param, _ = self.texture(node, "intensity", f"{key}.intensity", 1.0)
-            self.native.add_emitter("point", param, -1, [float(x) for x in position[:3]])
+            self.add_native(node, "emitter", "point", param, -1, [float(x) for x in position[:3]])
         else:
             param, bitmap = self.texture(node, "radiance", f"{key}.radiance", 1.0)
             if bitmap >= 0:
                 self.fail(node, "constant: textured radiance is not supported (use rgb or a number)")
-            self.native.add_emitter("constant", param, -1, [])
+            self.add_native(node, "emitter", "constant", param, -1, [])
 
     # -- sensor and integrator ---------------------------------------------------------------
 
