@@ -289,3 +289,11 @@ def test22_errors_of_the_core_name_the_plugin():
     # C++ side ("only one constant emitter is supported") without the plugin's name.
     with pytest.raises(tr.SceneError, match=r"<dict>: constant: only one constant emitter is supported"):
         tr.load_dict(_dict_box(sky={"type": "constant"}, sky2={"type": "constant"}))
+
+
+@pytest.mark.parametrize("to_world", [np.diag([1.0, 1.0, 1.0, 2.0]), np.diag([1.0, np.nan, 1.0, 1.0])])
+def test23_to_world_must_be_affine_and_finite(to_world):
+    # Found by fuzz/fuzz_dict.py: a last row other than (0, 0, 0, 1) was a MeshError from
+    # Mesh.transformed without the shape's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: to_world must be an affine transform"):
+        tr.load_dict(_dict_box(wall={"type": "rectangle", "to_world": to_world}))

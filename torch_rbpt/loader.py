@@ -242,9 +242,13 @@ class _Builder:
         if value is None:
             return np.eye(4)
         try:
-            return as_matrix(value, name)
+            m = as_matrix(value, name)
         except ValueError as e:
             self.fail(node, f"{node['type']}: {e}")
+        if not np.all(np.isfinite(m)) or not np.array_equal(m[3], [0, 0, 0, 1]):
+            self.fail(node, f"{node['type']}: {name} must be an affine transform with finite entries "
+                            f"(last row 0, 0, 0, 1), got {m.tolist()}")
+        return m
 
     def vector(self, node, name: str, default=None) -> np.ndarray:
         value = node.get(name, default)
