@@ -297,3 +297,9 @@ def test23_to_world_must_be_affine_and_finite(to_world):
     # Mesh.transformed without the shape's name.
     with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: to_world must be an affine transform"):
         tr.load_dict(_dict_box(wall={"type": "rectangle", "to_world": to_world}))
+
+
+def test24_singular_to_world_names_the_shape():
+    # Found by fuzz/fuzz_dict.py: a MeshError from Mesh.transformed without the shape's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: cube: to_world: .*singular"):
+        tr.load_dict(_dict_box(box={"type": "cube", "to_world": np.diag([1.0, 0.0, 1.0, 1.0])}))

@@ -429,7 +429,10 @@ class _Builder:
                     self.fail(node, f"{t}: {e}")
             else:
                 mesh = meshes.rectangle() if t == "rectangle" else meshes.cube()
-            mesh = mesh.transformed(to_world)
+            try:
+                mesh = mesh.transformed(to_world)
+            except meshes.MeshError as e:  # e.g. a singular to_world
+                self.fail(node, f"{t}: to_world: {e}")
             if t == "rectangle":
                 self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
             else:
