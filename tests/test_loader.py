@@ -303,3 +303,18 @@ def test24_singular_to_world_names_the_shape():
     # Found by fuzz/fuzz_dict.py: a MeshError from Mesh.transformed without the shape's name.
     with pytest.raises(tr.SceneError, match=r"<dict>: cube: to_world: .*singular"):
         tr.load_dict(_dict_box(box={"type": "cube", "to_world": np.diag([1.0, 0.0, 1.0, 1.0])}))
+
+
+@pytest.mark.parametrize("body, pattern", [
+    # Found by fuzz/fuzz_xml.py: ValueErrors from Transform or float() without file and line.
+    ('<transform name="to_world">\n<rotate value="0 0 0" angle="3"/></transform>',
+     r":3: <rotate>: rotate: the axis must not be zero"),
+    ('<transform name="to_world">\n<translate x="one"/></transform>', r":3: <translate>: .*'one'"),
+    ('<transform name="to_world">\n<lookat origin="1 1 1" target="1 1 1"/></transform>',
+     r":3: <lookat>: look_at: origin and target coincide"),
+    ('<point name="center" x="0" y="up" z="0"/>', r":2: center\.y: cannot parse a number from 'up'"),
+])
+def test25_xml_transform_and_point_errors_name_file_and_line(tmp_path, body, pattern):
+    path = _write(tmp_path, f'<shape type="sphere">{body}</shape>')
+    with pytest.raises(tr.SceneError, match=re.escape(str(path)) + pattern):
+        tr.load_file(path)
