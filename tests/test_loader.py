@@ -318,3 +318,12 @@ def test25_xml_transform_and_point_errors_name_file_and_line(tmp_path, body, pat
     path = _write(tmp_path, f'<shape type="sphere">{body}</shape>')
     with pytest.raises(tr.SceneError, match=re.escape(str(path)) + pattern):
         tr.load_file(path)
+
+
+def test26_singular_camera_transform_is_refused(tmp_path):
+    # Found by fuzz/fuzz_xml.py: a camera to_world with a zero column loaded and then
+    # crashed the interpreter (segmentation fault) in the renderer.
+    path = _write(tmp_path, '<sensor type="perspective">\n<transform name="to_world">\n'
+                            '<matrix value="0 0 0 0 0 1 0 0 0 0 1 4 0 0 0 1"/></transform></sensor>')
+    with pytest.raises(tr.SceneError, match=re.escape(f"{path}:2: perspective: to_world must be invertible")):
+        tr.load_file(path)

@@ -479,6 +479,8 @@ class _Builder:
         self.check(node, "sensor", nested=("film", "sampler"))
         s = Sensor()
         s.to_world = self.matrix(node)
+        if np.linalg.matrix_rank(s.to_world[:3, :3]) < 3:  # the renderer's rays would be NaN
+            self.fail(node, f"perspective: to_world must be invertible, got {s.to_world.tolist()}")
         for name in ("principal_point_offset_x", "principal_point_offset_y"):
             if self.number(node, name, 0.0) != 0.0:
                 self.fail(node, f"perspective: '{name}' must be 0 (off-centre projections are not supported)")
