@@ -282,6 +282,9 @@ def test21_boolean_parameters_reject_arrays_and_tensors():
     with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: parameter 'flip_normals' must be a bool"):
         tr.load_dict(_dict_box(wall={"type": "rectangle", "flip_normals": np.array([True, False])}))
     assert tr.load_dict(_dict_box(red={"type": "roughconductor", "sample_visible": "true"}))
+    # The same for a conductor's material given as an array (numpy's "truth value ... ambiguous").
+    with pytest.raises(tr.SceneError, match=r"<dict>: conductor: parameter 'material' must be a string"):
+        tr.load_dict(_dict_box(red={"type": "conductor", "material": np.array([1.0, 2.0])}))
 
 
 def test22_errors_of_the_core_name_the_plugin():

@@ -352,7 +352,7 @@ class _Builder:
             index = self.bsdf(child, f"{key}.brdf_0", twosided=True)
             self.built_bsdfs[id(node)] = index
             return index
-        material = node.get("material", "none")
+        material = self.string(node, "material", "none")
         if t in ("conductor", "roughconductor") and material != "none":
             self.fail(node, f"{t}: material '{material}' is not supported (only 'none', an ideal "
                             f"mirror tinted by specular_reflectance)")
