@@ -330,3 +330,12 @@ def test26_singular_camera_transform_is_refused(tmp_path):
                             '<matrix value="0 0 0 0 0 1 0 0 0 0 1 4 0 0 0 1"/></transform></sensor>')
     with pytest.raises(tr.SceneError, match=re.escape(f"{path}:2: perspective: to_world must be invertible")):
         tr.load_file(path)
+
+
+def test27_filenames_must_be_strings_the_file_system_accepts():
+    # Found by fuzz/fuzz_dict.py: a dict as filename became a name too long for the file
+    # system, and Path.exists raised a bare OSError.
+    with pytest.raises(tr.SceneError, match=r"<dict>: obj: parameter 'filename' must be a string"):
+        tr.load_dict(_dict_box(mesh={"type": "obj", "filename": {"type": "rgb", "value": 1}}))
+    with pytest.raises(tr.SceneError, match=r"<dict>: obj: cannot access file 'xxxx.*File name too long"):
+        tr.load_dict(_dict_box(mesh={"type": "obj", "filename": "x" * 5000}))

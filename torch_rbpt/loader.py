@@ -269,11 +269,16 @@ class _Builder:
         return ior
 
     def resolve(self, node, filename) -> Path:
+        if not isinstance(filename, (str, os.PathLike)):
+            self.fail(node, f"{node['type']}: parameter 'filename' must be a string, got {filename!r}")
         p = Path(os.path.expanduser(str(filename)))
         candidates = [p] if p.is_absolute() else [base / p for base in self.search]
         for c in candidates:
-            if c.exists():
-                return c
+            try:
+                if c.exists():
+                    return c
+            except OSError as e:  # e.g. a name too long for the file system
+                self.fail(node, f"{node['type']}: cannot access file '{filename}' ({e.strerror})")
         self.fail(node, f"{node['type']}: file '{filename}' not found (looked in "
                         f"{', '.join(str(c.parent) for c in candidates)})")
 
