@@ -3,7 +3,7 @@ PYTHON ?= python3
 PIP = $(PYTHON) -m pip
 SOURCES = $(wildcard csrc/*.h csrc/*.cpp) setup.py
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install demo test test-slow bench fuzz clean
 
 # Install torch (local CPU wheel, pinned so pip never resolves a CUDA build), the other
 # dependencies, and build the extension in place. Re-runs when a C++ source changes.
@@ -29,5 +29,20 @@ bench: .installed
 	$(PYTHON) benchmarks/bench_render.py
 	$(PYTHON) benchmarks/bench_gradients.py
 
+# Fuzz each loader (XML, dict, OBJ, PLY, images) for FUZZ_SECONDS seconds, one target at a
+# time, starting from fuzz/seeds/<target>; not part of `make test`. New inputs that reach new
+# code go to fuzz/corpus/<target>, findings to fuzz/findings/<target>-crash-* (see fuzz/README.md).
+FUZZ_SECONDS ?= 60
+FUZZ_TARGETS = xml dict obj ply image
+
+fuzz: .installed
+	$(PIP) install --quiet -r requirements-fuzz.txt
+	@status=0; for t in $(FUZZ_TARGETS); do \
+		mkdir -p fuzz/corpus/$$t fuzz/findings; \
+		echo "== fuzz_$$t: $(FUZZ_SECONDS) s"; \
+		$(PYTHON) fuzz/fuzz_$$t.py fuzz/corpus/$$t fuzz/seeds/$$t -max_total_time=$(FUZZ_SECONDS) \
+			-timeout=30 -rss_limit_mb=4096 -artifact_prefix=fuzz/findings/$$t- || status=1; \
+	done; exit $$status
+
 clean:
-	rm -rf build *.egg-info torch_rbpt/*.so .installed out
+	rm -rf build *.egg-info torch_rbpt/*.so .installed out fuzz/corpus

@@ -240,3 +240,20 @@ def test_other_bad_inputs(tmp_path):
     with pytest.raises(ImageError, match=r"fake\.png: cannot open image"):
         read_image(tmp_path / "fake.png")
     assert issubclass(ImageError, ValueError)
+
+
+# Found by fuzz/fuzz_image.py: an EXR header whose channel name is not UTF-8 made
+# OpenImageIO's binding raise UnicodeDecodeError, which did not name the file.
+FUZZ_EXR_BAD_UTF8 = (
+    "di8xAQIAAABjYXBEYXRlAHN0cmluZwATAAAAMjAyNjoxMToyMiAxMToyOTowOWNoYW5uZWxzAGNobGm/dAA3AAAA"
+    "QgACAAAAAAAAAAEAAAABAAAARwACAAAAAAAAAAEAAAABAAAAUgACAAAIAAAAAAAAAAAAAAAAAQAAAFIAAgAAAAAA"
+    "AAABAAAAAQAAAABjb21wcmVzc2lvbgBjb21wcmVzc2lvbgABAAAAA2RhdGFXaW5kb3cAYm94NGkAAAA/AAAAAJqZ"
+    "mT4AAAAAZmZmPwAAgD/NzMw9")
+
+
+def test_fuzzed_exr_with_non_utf8_header_is_an_image_error(tmp_path):
+    import base64
+    path = tmp_path / "bad.exr"
+    path.write_bytes(base64.b64decode(FUZZ_EXR_BAD_UTF8))
+    with pytest.raises(ImageError, match=r"bad\.exr: cannot open image"):
+        read_image(path)

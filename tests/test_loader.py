@@ -220,3 +220,122 @@ def test17_bundled_scene_loads():
     scene = tr.load_file(ROOT / "torch_rbpt/scenes/cornell_box.xml", res=16)
     assert "red.reflectance.value" in scene.params and "light.emitter.radiance.value" in scene.params
     assert torch.isfinite(tr.render(scene, spp=4)).all()
+
+
+def test18_include_cycle_names_the_include_and_the_cycle(tmp_path):
+    a = _write(tmp_path, '<include filename="b.xml"/>', "a.xml")
+    b = _write(tmp_path, '\n<include filename="a.xml"/>', "b.xml")
+    with pytest.raises(tr.SceneError, match=re.escape(f"{b}:3: <include> cycle: {a} -> {b} -> {a}")):
+        tr.load_file(a)
+    me = _write(tmp_path, '<include filename="self.xml"/>', "self.xml")
+    with pytest.raises(tr.SceneError, match=re.escape(f"{me}:2: <include> cycle: {me} -> {me}")):
+        tr.load_file(me)
+    # Including one file twice, side by side, is not a cycle.
+    (tmp_path / "m.xml").write_text('<scene version="3.0.0"><default name="x" value="1"/></scene>')
+    tr.load_file(_write(tmp_path, '<include filename="m.xml"/><include filename="m.xml"/>', "twice.xml"))
+
+
+def test19_unknown_nested_plugin_lists_the_supported_ones_of_its_kind(tmp_path):
+    bsdfs = "supported: conductor, dielectric, diffuse, roughconductor, roughplastic, twosided"
+    with pytest.raises(tr.SceneError, match=re.escape(f"unsupported bsdf plugin 'plastic' ({bsdfs})")):
+        tr.load_dict({"type": "scene", "s": {"type": "sphere", "bsdf": {"type": "plastic"}}})
+    with pytest.raises(tr.SceneError, match=r"'film': unsupported film plugin 'ldrfilm' \(supported: hdrfilm\)"):
+        tr.load_dict({"type": "scene", "s": {"type": "perspective", "film": {"type": "ldrfilm"}}})
+    # A key that names no kind: all supported plugins are listed.
+    with pytest.raises(tr.SceneError, match=r"unsupported plugin 'plastic' \(supported: area, .*twosided\)"):
+        tr.load_dict({"type": "scene", "s": {"type": "sphere", "mat": {"type": "plastic"}}})
+    # XML: the kind comes from the tag, the location is the nested element's line.
+    path = _write(tmp_path, '<shape type="sphere">\n  <bsdf type="plastic"/>\n</shape>')
+    with pytest.raises(tr.SceneError, match=re.escape(f"{path}:3: sphere: 'bsdf': unsupported bsdf "
+                                                      f"plugin 'plastic' ({bsdfs})")):
+        tr.load_file(path)
+
+
+@pytest.mark.parametrize("change, pattern", [
+    # Found by fuzz/fuzz_dict.py: each raised TypeError, KeyError, a numpy ValueError or
+    # (for out-of-range ints) a pybind11 RuntimeError at render time.
+    ({"wall": {"type": ["rectangle"]}}, r"'wall': the plugin type must be a string, got list"),
+    ({"wall": {"type": np.array([1.0, 2.0])}}, r"'wall': the plugin type must be a string"),
+    ({"wall": {"type": "rectangle", "bsdf": {"type": {"a": 1}}}}, r"'bsdf': the plugin type must be a string"),
+    ({"red": {"type": "diffuse", "reflectance": {"type": "rgb"}}}, r"'reflectance': an rgb needs a 'value'"),
+    ({"wall": {"type": "rectangle", "bsdf": {"type": "ref", "id": ["red"]}}}, r"a ref needs a string 'id'"),
+    ({"red": {"type": "diffuse", "reflectance": {"type": "rgb", "value": {"x": 1}}}},
+     r"parameter 'reflectance' must be numbers"),
+    ({"red": {"type": "diffuse", "reflectance": [0.5, "x", 0.5]}}, r"diffuse: parameter 'reflectance' must be numbers"),
+    ({"light": {"type": "point", "position": [0, {}, 2]}}, r"point: parameter 'position' must be numbers"),
+    ({"wall": {"type": "rectangle", "to_world": [[{}]]}}, r"rectangle: .*to_world"),
+    ({"integrator": {"type": "path", "max_depth": 2 ** 40}}, r"path: parameter 'max_depth' must fit in 32 bits"),
+    ({"sensor": {"type": "perspective", "sampler": {"type": "independent", "sample_count": 1e300}}},
+     r"independent: parameter 'sample_count' must fit in 32 bits"),
+])
+def test20_dict_values_of_wrong_type_are_scene_errors(change, pattern):
+    with pytest.raises(tr.SceneError, match=r"<dict>: .*" + pattern):
+        tr.load_dict(_dict_box(**change))
+
+
+def test21_boolean_parameters_reject_arrays_and_tensors():
+    # Found by fuzz/fuzz_dict.py: a tensor sample_visible raised torch's RuntimeError
+    # "Boolean value of Tensor ... is ambiguous".
+    bsdf = {"type": "roughconductor", "sample_visible": torch.tensor([1.0, 0.0])}
+    with pytest.raises(tr.SceneError, match=r"<dict>: roughconductor: parameter 'sample_visible' must be a bool"):
+        tr.load_dict(_dict_box(red=bsdf))
+    with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: parameter 'flip_normals' must be a bool"):
+        tr.load_dict(_dict_box(wall={"type": "rectangle", "flip_normals": np.array([True, False])}))
+    assert tr.load_dict(_dict_box(red={"type": "roughconductor", "sample_visible": "true"}))
+    # The same for a conductor's material given as an array (numpy's "truth value ... ambiguous").
+    with pytest.raises(tr.SceneError, match=r"<dict>: conductor: parameter 'material' must be a string"):
+        tr.load_dict(_dict_box(red={"type": "conductor", "material": np.array([1.0, 2.0])}))
+
+
+def test22_errors_of_the_core_name_the_plugin():
+    # Found by fuzz/fuzz_dict.py: a second constant emitter was a bare ValueError from the
+    # C++ side ("only one constant emitter is supported") without the plugin's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: constant: only one constant emitter is supported"):
+        tr.load_dict(_dict_box(sky={"type": "constant"}, sky2={"type": "constant"}))
+
+
+@pytest.mark.parametrize("to_world", [np.diag([1.0, 1.0, 1.0, 2.0]), np.diag([1.0, np.nan, 1.0, 1.0])])
+def test23_to_world_must_be_affine_and_finite(to_world):
+    # Found by fuzz/fuzz_dict.py: a last row other than (0, 0, 0, 1) was a MeshError from
+    # Mesh.transformed without the shape's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: rectangle: to_world must be an affine transform"):
+        tr.load_dict(_dict_box(wall={"type": "rectangle", "to_world": to_world}))
+
+
+def test24_singular_to_world_names_the_shape():
+    # Found by fuzz/fuzz_dict.py: a MeshError from Mesh.transformed without the shape's name.
+    with pytest.raises(tr.SceneError, match=r"<dict>: cube: to_world: .*singular"):
+        tr.load_dict(_dict_box(box={"type": "cube", "to_world": np.diag([1.0, 0.0, 1.0, 1.0])}))
+
+
+@pytest.mark.parametrize("body, pattern", [
+    # Found by fuzz/fuzz_xml.py: ValueErrors from Transform or float() without file and line.
+    ('<transform name="to_world">\n<rotate value="0 0 0" angle="3"/></transform>',
+     r":3: <rotate>: rotate: the axis must not be zero"),
+    ('<transform name="to_world">\n<translate x="one"/></transform>', r":3: <translate>: .*'one'"),
+    ('<transform name="to_world">\n<lookat origin="1 1 1" target="1 1 1"/></transform>',
+     r":3: <lookat>: look_at: origin and target coincide"),
+    ('<point name="center" x="0" y="up" z="0"/>', r":2: center\.y: cannot parse a number from 'up'"),
+])
+def test25_xml_transform_and_point_errors_name_file_and_line(tmp_path, body, pattern):
+    path = _write(tmp_path, f'<shape type="sphere">{body}</shape>')
+    with pytest.raises(tr.SceneError, match=re.escape(str(path)) + pattern):
+        tr.load_file(path)
+
+
+def test26_singular_camera_transform_is_refused(tmp_path):
+    # Found by fuzz/fuzz_xml.py: a camera to_world with a zero column loaded and then
+    # crashed the interpreter (segmentation fault) in the renderer.
+    path = _write(tmp_path, '<sensor type="perspective">\n<transform name="to_world">\n'
+                            '<matrix value="0 0 0 0 0 1 0 0 0 0 1 4 0 0 0 1"/></transform></sensor>')
+    with pytest.raises(tr.SceneError, match=re.escape(f"{path}:2: perspective: to_world must be invertible")):
+        tr.load_file(path)
+
+
+def test27_filenames_must_be_strings_the_file_system_accepts():
+    # Found by fuzz/fuzz_dict.py: a dict as filename became a name too long for the file
+    # system, and Path.exists raised a bare OSError.
+    with pytest.raises(tr.SceneError, match=r"<dict>: obj: parameter 'filename' must be a string"):
+        tr.load_dict(_dict_box(mesh={"type": "obj", "filename": {"type": "rgb", "value": 1}}))
+    with pytest.raises(tr.SceneError, match=r"<dict>: obj: cannot access file 'xxxx.*File name too long"):
+        tr.load_dict(_dict_box(mesh={"type": "obj", "filename": "x" * 5000}))

@@ -485,6 +485,21 @@ def test_ply_errors_name_file(tmp_path, text, pattern):
         load_ply(write(tmp_path / "bad.ply", text))
 
 
+def test_fuzzed_huge_obj_index_is_a_mesh_error(tmp_path):
+    # Found by fuzz/fuzz_obj.py: an index beyond int64 raised OverflowError.
+    body = TRI + "vt 0 0\nf 1 2 3/88888888888888888888888881\n"
+    with pytest.raises(MeshError, match=r"bad\.obj, line 5: index 88888888888888888888888881 .*out of range"):
+        load_obj(write(tmp_path / "bad.obj", body))
+
+
+def test_fuzzed_ply_list_length_beyond_its_type_is_a_mesh_error(tmp_path):
+    # Found by fuzz/fuzz_ply.py: a list length of 300 for a uchar count raised plyfile's
+    # OverflowError.
+    text = PLY_HEADER + "0 0 0\n1 0 0\n0 1 0\n300 0 1 2\n"
+    with pytest.raises(MeshError, match=r"bad\.ply: cannot parse PLY file .*300"):
+        load_ply(write(tmp_path / "bad.ply", text))
+
+
 def test_truncated_binary_ply(tmp_path):
     path = write_ply(tmp_path / "full.ply", TRIS)
     data = path.read_bytes()

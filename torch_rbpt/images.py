@@ -133,9 +133,12 @@ def read_image(path, raw: bool = False) -> torch.Tensor:
     oiio = _oiio()
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # keep color as stored, as Mitsuba does
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        raise ImageError(f"{path}: cannot open image ({oiio.geterror()})")
+    try:
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp is None:
+            raise ImageError(f"{path}: cannot open image ({oiio.geterror()})")
+    except UnicodeDecodeError as e:  # the binding decodes header strings and errors as UTF-8
+        raise ImageError(f"{path}: cannot open image (a header string is not UTF-8: {e})") from None
     try:
         spec = inp.spec()
         integer = _is_integer_format(oiio, spec.format)

@@ -6,6 +6,7 @@ what is supported.
 """
 from __future__ import annotations
 
+import numbers
 import os
 from pathlib import Path
 
@@ -81,8 +82,35 @@ def _is_plugin(value) -> bool:
     return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb",)
 
 
+def _check_plugin_dicts(node: dict, key: str) -> None:
+    """Check the shape of every dict in a scene tree before it is interpreted: a "type" is a
+    string, an rgb has a "value", a ref has a string "id"."""
+    t = node.get("type")
+    if "type" in node and not isinstance(t, str):
+        raise SceneError(f"{_where(node)}: '{key}': the plugin type must be a string, got "
+                         f"{type(t).__name__} {t!r}")
+    if t == "rgb" and "value" not in node:
+        raise SceneError(f"{_where(node)}: '{key}': an rgb needs a 'value'")
+    if t == "ref" and not isinstance(node.get("id"), str):
+        raise SceneError(f"{_where(node)}: '{key}': a ref needs a string 'id', got {node.get('id')!r}")
+    for name, value in node.items():
+        if isinstance(value, dict) and not str(name).startswith("__"):
+            _check_plugin_dicts(value, name)
+
+
+def _unsupported(node: dict, key: str) -> str:
+    """The message for a plugin of unknown type, listing the supported plugins of its kind
+    (from its XML tag, or its dict key when that names a kind) or all of them."""
+    kind = node.get("__tag__") or key
+    if kind not in CATEGORY.values():
+        return f"unsupported plugin '{node['type']}' (supported: {', '.join(sorted(CATEGORY))})"
+    supported = sorted(k for k, v in CATEGORY.items() if v == kind)
+    return f"unsupported {kind} plugin '{node['type']}' (supported: {', '.join(supported)})"
+
+
 class _Builder:
     def __init__(self, scene: dict, base_dir: Path, dtype: torch.dtype):
+        _check_plugin_dicts(scene, "scene")
         self.search = [base_dir] + list(scene.get("__search__", []))
         self.dtype = dtype
         self.native = _C.Scene()
@@ -130,7 +158,11 @@ class _Builder:
             if key.startswith("__") or key in ("type", "id"):
                 continue
             if _is_plugin(value):
-                cat = CATEGORY.get(self.resolve_ref(value)["type"])
+                target = self.resolve_ref(value)
+                cat = CATEGORY.get(target["type"])
+                if cat is None:
+                    self.fail(target if target.get("__where__") else node,
+                              f"{t}: '{key}': {_unsupported(target, key)}")
                 if key in allowed or cat in nested:
                     continue
                 self.fail(value if value.get("__where__") else node,
@@ -156,6 +188,13 @@ class _Builder:
         self.params[key] = t
         return self.native.add_param(key, t.numel())
 
+    def add_native(self, node, what: str, *args) -> int:
+        """`self.native.add_<what>(*args)`; the core's ValueErrors are re-raised naming the plugin."""
+        try:
+            return getattr(self.native, f"add_{what}")(*args)
+        except ValueError as e:
+            self.fail(node, f"{node['type']}: {e}")
+
     def add_fixed(self, key: str, value, why: str) -> None:
         """A Mitsuba parameter we expose read-only: editing or differentiating it is an error."""
         self.fixed[key] = (torch.as_tensor(np.asarray(value, dtype=np.float64)).to(self.dtype), why)
@@ -170,12 +209,25 @@ class _Builder:
                     if value.lower() not in ("true", "false"):
                         raise ValueError
                     return value.lower() == "true"
+                if not isinstance(value, numbers.Real):  # not a list, array or tensor
+                    raise TypeError
                 return bool(value)
             if kind is int and isinstance(value, float) and not value.is_integer():
                 raise ValueError
-            return kind(value)
-        except (TypeError, ValueError):
+            result = kind(value)
+        except (TypeError, ValueError, OverflowError):
             self.fail(node, f"{node['type']}: parameter '{name}' must be a {kind.__name__}, got {value!r}")
+        if kind is int and not -2 ** 31 <= result < 2 ** 31:  # the renderer's ints are 32-bit
+            self.fail(node, f"{node['type']}: parameter '{name}' must fit in 32 bits, got {value!r}")
+        return result
+
+    def floats(self, node, name: str, value) -> np.ndarray:
+        """`value` (a number, list, array or tensor) as a flat float64 array."""
+        try:
+            return np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value,
+                              dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError, OverflowError):
+            self.fail(node, f"{node['type']}: parameter '{name}' must be numbers, got {value!r}")
 
     def string(self, node, name: str, default: str, choices=None) -> str:
         value = node.get(name, default)
@@ -190,13 +242,17 @@ class _Builder:
         if value is None:
             return np.eye(4)
         try:
-            return as_matrix(value, name)
+            m = as_matrix(value, name)
         except ValueError as e:
             self.fail(node, f"{node['type']}: {e}")
+        if not np.all(np.isfinite(m)) or not np.array_equal(m[3], [0, 0, 0, 1]):
+            self.fail(node, f"{node['type']}: {name} must be an affine transform with finite entries "
+                            f"(last row 0, 0, 0, 1), got {m.tolist()}")
+        return m
 
     def vector(self, node, name: str, default=None) -> np.ndarray:
         value = node.get(name, default)
-        v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+        v = self.floats(node, name, value)
         if v.shape != (3,):
             self.fail(node, f"{node['type']}: parameter '{name}' needs 3 values, got {v.size}")
         return v
@@ -213,11 +269,16 @@ class _Builder:
         return ior
 
     def resolve(self, node, filename) -> Path:
+        if not isinstance(filename, (str, os.PathLike)):
+            self.fail(node, f"{node['type']}: parameter 'filename' must be a string, got {filename!r}")
         p = Path(os.path.expanduser(str(filename)))
         candidates = [p] if p.is_absolute() else [base / p for base in self.search]
         for c in candidates:
-            if c.exists():
-                return c
+            try:
+                if c.exists():
+                    return c
+            except OSError as e:  # e.g. a name too long for the file system
+                self.fail(node, f"{node['type']}: cannot access file '{filename}' ({e.strerror})")
         self.fail(node, f"{node['type']}: file '{filename}' not found (looked in "
                         f"{', '.join(str(c.parent) for c in candidates)})")
 
@@ -230,7 +291,7 @@ class _Builder:
             value = self.deref(value, "texture", owner)
             key = value.get("__id__", key)
         if isinstance(value, dict) and value.get("type") == "rgb":
-            v = np.asarray(value["value"], dtype=np.float64).reshape(-1)
+            v = self.floats(value, name, value["value"])
             if v.size == 1:
                 v = np.repeat(v, 3)
             if v.size != 3:
@@ -242,13 +303,13 @@ class _Builder:
             self.fail(value, f"'{name}': unsupported texture '{value.get('type')}' (supported: rgb, "
                              f"bitmap, or a number)")
         if isinstance(value, (torch.Tensor, np.ndarray, list, tuple)):
-            v = np.asarray(value.detach().cpu() if hasattr(value, "detach") else value, dtype=np.float64).reshape(-1)
+            v = self.floats(owner, name, value)
             if v.size not in (1, 3):
                 self.fail(owner, f"{owner['type']}: '{name}' needs 1 or 3 values, got {v.size}")
             return self.add_param(f"{key}.value", v), -1
         try:
             v = float(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb or bitmap, got {value!r}")
         return self.add_param(f"{key}.value", [v]), -1
 
@@ -273,7 +334,7 @@ class _Builder:
         self.params[f"{key}.data"] = self.params[f"{key}.data"].reshape(h, w, c)
         filt = self.string(node, "filter_type", "bilinear", ("bilinear", "nearest"))
         wrap = self.string(node, "wrap_mode", "repeat", ("repeat", "mirror", "clamp"))
-        index = self.native.add_bitmap(param, w, h, c, wrap, filt == "nearest")
+        index = self.add_native(node, "bitmap", param, w, h, c, wrap, filt == "nearest")
         self.built_textures[id(node)] = index
         return index
 
@@ -296,11 +357,11 @@ class _Builder:
             index = self.bsdf(child, f"{key}.brdf_0", twosided=True)
             self.built_bsdfs[id(node)] = index
             return index
-        material = node.get("material", "none")
+        material = self.string(node, "material", "none")
         if t in ("conductor", "roughconductor") and material != "none":
             self.fail(node, f"{t}: material '{material}' is not supported (only 'none', an ideal "
                             f"mirror tinted by specular_reflectance)")
-        if node.get("sample_visible", True) not in (True, "true"):
+        if not self.number(node, "sample_visible", True, bool):
             self.fail(node, f"{t}: only sample_visible=true is supported")
         refl = spec = trans = None
         alpha, dist, eta, nonlinear = -1, "beckmann", 1.0, False
@@ -329,7 +390,7 @@ class _Builder:
         if t in ("dielectric", "roughplastic"):
             self.add_fixed(f"{key}.eta", [eta], f"the relative index of refraction (int_ior / ext_ior) "
                                                 f"of a {t} is not differentiable and is fixed at load")
-        index = self.native.add_bsdf(t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
+        index = self.add_native(node, "bsdf", t, twosided, refl, spec, trans, alpha, dist, float(eta), nonlinear)
         self.built_bsdfs[id(node)] = index
         return index
 
@@ -357,7 +418,7 @@ class _Builder:
             if not np.allclose(scales, scales[0], rtol=1e-4) or scales[0] <= 0:
                 self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
             frame = (axes / scales).T.tolist()
-            shape = self.native.add_sphere(m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
+            shape = self.add_native(node, "sphere", m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
             self.add_fixed(f"{key}.to_world", m, GEOMETRY)
         else:
             if t in ("obj", "ply"):
@@ -373,12 +434,15 @@ class _Builder:
                     self.fail(node, f"{t}: {e}")
             else:
                 mesh = meshes.rectangle() if t == "rectangle" else meshes.cube()
-            mesh = mesh.transformed(to_world)
+            try:
+                mesh = mesh.transformed(to_world)
+            except meshes.MeshError as e:  # e.g. a singular to_world
+                self.fail(node, f"{t}: to_world: {e}")
             if t == "rectangle":
                 self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
             else:
                 self.add_fixed(f"{key}.vertex_positions", mesh.positions.reshape(-1), GEOMETRY)
-            shape = self.native.add_mesh(
+            shape = self.add_native(node, "mesh",
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
                 None if mesh.uvs is None else torch.from_numpy(mesh.uvs), bsdf, flip)
@@ -393,7 +457,7 @@ class _Builder:
             param, bitmap = self.texture(em, "radiance", f"{ekey}.radiance", None if "radiance" in em else 1.0)
             if bitmap >= 0:
                 self.fail(em, "area: textured radiance is not supported")
-            self.native.add_emitter("area", param, shape, [])
+            self.add_native(em, "emitter", "area", param, shape, [])
 
     def emitter(self, node, key: str) -> None:
         self.check(node, "emitter")
@@ -407,12 +471,12 @@ class _Builder:
             if "to_world" in node:
                 position = self.matrix(node) @ np.append(position, 1.0)
             param, _ = self.texture(node, "intensity", f"{key}.intensity", 1.0)
-            self.native.add_emitter("point", param, -1, [float(x) for x in position[:3]])
+            self.add_native(node, "emitter", "point", param, -1, [float(x) for x in position[:3]])
         else:
             param, bitmap = self.texture(node, "radiance", f"{key}.radiance", 1.0)
             if bitmap >= 0:
                 self.fail(node, "constant: textured radiance is not supported (use rgb or a number)")
-            self.native.add_emitter("constant", param, -1, [])
+            self.add_native(node, "emitter", "constant", param, -1, [])
 
     # -- sensor and integrator ---------------------------------------------------------------
 
@@ -420,6 +484,8 @@ class _Builder:
         self.check(node, "sensor", nested=("film", "sampler"))
         s = Sensor()
         s.to_world = self.matrix(node)
+        if np.linalg.matrix_rank(s.to_world[:3, :3]) < 3:  # the renderer's rays would be NaN
+            self.fail(node, f"perspective: to_world must be invertible, got {s.to_world.tolist()}")
         for name in ("principal_point_offset_x", "principal_point_offset_y"):
             if self.number(node, name, 0.0) != 0.0:
                 self.fail(node, f"perspective: '{name}' must be 0 (off-centre projections are not supported)")
@@ -512,7 +578,7 @@ class _Builder:
             if t == "ref":
                 continue
             if cat is None:
-                raise SceneError(f"{_where(value)}: unsupported plugin '{t}' (supported: {', '.join(sorted(CATEGORY))})")
+                raise SceneError(f"{_where(value)}: {_unsupported(value, key)}")
             key = value.get("__id__", key)
             if cat == "shape":
                 self.shape(value, key)

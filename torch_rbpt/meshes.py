@@ -557,6 +557,9 @@ def _parse_corner(path: Path, tok: bytes, lineno: int) -> tuple:
             bad = field.decode(errors="replace")
             raise MeshError(f"{path}, line {lineno}: malformed index {bad!r} in face corner "
                             f"{text!r}") from None
+        if not -2 ** 62 < values[k] < 2 ** 62:
+            raise MeshError(f"{path}, line {lineno}: index {values[k]} in face corner {text!r} is "
+                            f"out of range")
         if values[k] == 0:
             raise MeshError(f"{path}, line {lineno}: index 0 in face corner {text!r} is invalid "
                             f"(OBJ indices start at 1)")
@@ -710,7 +713,7 @@ def _read_plyfile(path: Path):
         raise MeshError(f"{path}, line {exc.line}: invalid PLY header: {exc.message}") from None
     except plyfile.PlyElementParseError as exc:
         raise MeshError(f"{path}{_ply_data_location(path, exc)}: {exc.message}") from None
-    except (ValueError, TypeError, OSError) as exc:
+    except (ValueError, TypeError, OSError, OverflowError) as exc:
         raise MeshError(f"{path}: cannot parse PLY file ({exc})") from None
 
 

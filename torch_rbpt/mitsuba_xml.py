@@ -42,6 +42,8 @@ class XMLReader:
         self.defaults: dict[str, str] = {}
         self.search_paths: list[Path] = [self.path.parent]
         self.used_overrides: set[str] = set()
+        # The files being read, outermost first, each with the <include> that opened it.
+        self.include_stack: list[tuple[Path, str]] = [(self.path, "")]
 
     # -- files -------------------------------------------------------------------------------
 
@@ -98,6 +100,13 @@ class XMLReader:
             raise SceneError(f"{where}: <{el.tag}> needs the attribute '{name}'")
         return self._substitute(value, where)
 
+    @staticmethod
+    def _float(text: str, where: str, what: str) -> float:
+        try:
+            return float(text)
+        except ValueError:
+            raise SceneError(f"{where}: {what}: cannot parse a number from '{text}'") from None
+
     def _substitute(self, value: str, where: str) -> str:
         def repl(m):
             name = m.group(1)
@@ -135,11 +144,14 @@ class XMLReader:
                 if node.get("type") != "scene":
                     raise SceneError(f"{where}: <include> is only allowed directly in <scene>")
                 target = self.resolve(self._attr(child, "filename", where), where, file.parent)
+                self._check_include_cycle(target.resolve(), where)
                 root = self._parse(target)
                 if root.tag != "scene":
                     raise SceneError(f"{target}:{root.sourceline}: an included file must have a "
                                      f"<scene> root, got <{root.tag}>")
+                self.include_stack.append((target.resolve(), where))
                 self._children(root, node, target)
+                self.include_stack.pop()
             elif tag in PLUGIN_TAGS:
                 value = self._plugin(child, file)
                 if node.get("type") == "scene":
@@ -160,6 +172,13 @@ class XMLReader:
             else:
                 raise SceneError(f"{where}: unsupported element <{tag}> (supported: "
                                  f"{', '.join(PLUGIN_TAGS + VALUE_TAGS)}, default, include, path)")
+
+    def _check_include_cycle(self, target: Path, where: str) -> None:
+        files = [f for f, _ in self.include_stack]
+        if target in files:
+            cycle = files[files.index(target):] + [target]
+            raise SceneError(f"{where}: <include> cycle: {' -> '.join(str(f) for f in cycle)} "
+                             f"(a file must not include itself, directly or indirectly)")
 
     @staticmethod
     def _unnamed(scene: dict, type_name: str) -> str:
@@ -189,7 +208,7 @@ class XMLReader:
             if el.get("value") is not None:
                 v = _numbers(self._attr(el, "value", where), where, name)
             else:
-                v = [float(self._attr(el, c, where, "0")) for c in "xyz"]
+                v = [self._float(self._attr(el, c, where, "0"), where, f"{name}.{c}") for c in "xyz"]
             if len(v) != 3:
                 raise SceneError(f"{where}: <{tag} name=\"{name}\"> needs 3 values, got {len(v)}")
             return name, v
@@ -220,45 +239,54 @@ class XMLReader:
             if not isinstance(op.tag, str):
                 continue
             w = f"{where.rsplit(':', 1)[0]}:{op.sourceline}"
-            tag = op.tag
-            if tag == "translate":
-                if op.get("value") is not None:
-                    v = _numbers(self._attr(op, "value", w), w, "translate")
-                else:
-                    v = [float(self._attr(op, c, w, "0")) for c in "xyz"]
-                m = Transform.translate(v)
-            elif tag == "scale":
-                if op.get("value") is not None:
-                    v = _numbers(self._attr(op, "value", w), w, "scale")
-                    v = v * 3 if len(v) == 1 else v
-                else:
-                    v = [float(self._attr(op, c, w, "1")) for c in "xyz"]
-                m = Transform.scale(v)
-            elif tag == "rotate":
-                if op.get("value") is not None:
-                    axis = _numbers(self._attr(op, "value", w), w, "rotate")
-                else:
-                    axis = [float(self._attr(op, c, w, "0")) for c in "xyz"]
-                m = Transform.rotate(axis, float(self._attr(op, "angle", w)))
-            elif tag == "matrix":
-                v = _numbers(self._attr(op, "value", w), w, "matrix")
-                if len(v) == 9:
-                    mat = np.eye(4)
-                    mat[:3, :3] = np.reshape(v, (3, 3))
-                elif len(v) == 16:
-                    mat = np.reshape(v, (4, 4))
-                else:
-                    raise SceneError(f"{w}: <matrix> needs 9 or 16 values, got {len(v)}")
-                m = Transform(mat)
-            elif tag == "lookat":
-                m = Transform.look_at(_numbers(self._attr(op, "origin", w), w, "origin"),
-                                      _numbers(self._attr(op, "target", w), w, "target"),
-                                      _numbers(self._attr(op, "up", w, "0, 1, 0"), w, "up"))
-            else:
-                raise SceneError(f"{w}: unsupported transform <{tag}> (supported: translate, "
-                                 f"scale, rotate, matrix, lookat)")
-            t = m @ t
+            try:
+                t = self._transform_op(op, w) @ t
+            except SceneError:
+                raise
+            except ValueError as e:  # float() of an attribute, a zero rotation axis, ...
+                raise SceneError(f"{w}: <{op.tag}>: {e}") from None
         return t
+
+    def _transform_op(self, op, w: str) -> Transform:
+        """One <translate>, <scale>, <rotate>, <matrix> or <lookat> as a Transform."""
+        tag = op.tag
+        if tag == "translate":
+            if op.get("value") is not None:
+                v = _numbers(self._attr(op, "value", w), w, "translate")
+            else:
+                v = [float(self._attr(op, c, w, "0")) for c in "xyz"]
+            m = Transform.translate(v)
+        elif tag == "scale":
+            if op.get("value") is not None:
+                v = _numbers(self._attr(op, "value", w), w, "scale")
+                v = v * 3 if len(v) == 1 else v
+            else:
+                v = [float(self._attr(op, c, w, "1")) for c in "xyz"]
+            m = Transform.scale(v)
+        elif tag == "rotate":
+            if op.get("value") is not None:
+                axis = _numbers(self._attr(op, "value", w), w, "rotate")
+            else:
+                axis = [float(self._attr(op, c, w, "0")) for c in "xyz"]
+            m = Transform.rotate(axis, float(self._attr(op, "angle", w)))
+        elif tag == "matrix":
+            v = _numbers(self._attr(op, "value", w), w, "matrix")
+            if len(v) == 9:
+                mat = np.eye(4)
+                mat[:3, :3] = np.reshape(v, (3, 3))
+            elif len(v) == 16:
+                mat = np.reshape(v, (4, 4))
+            else:
+                raise SceneError(f"{w}: <matrix> needs 9 or 16 values, got {len(v)}")
+            m = Transform(mat)
+        elif tag == "lookat":
+            m = Transform.look_at(_numbers(self._attr(op, "origin", w), w, "origin"),
+                                  _numbers(self._attr(op, "target", w), w, "target"),
+                                  _numbers(self._attr(op, "up", w, "0, 1, 0"), w, "up"))
+        else:
+            raise SceneError(f"{w}: unsupported transform <{tag}> (supported: translate, "
+                             f"scale, rotate, matrix, lookat)")
+        return m
 
 
 def read_xml(path, overrides: dict | None = None) -> dict:

@@ -95,7 +95,10 @@ def as_matrix(value, what: str = "to_world") -> np.ndarray:
         value = value.matrix
     if hasattr(value, "detach"):  # torch.Tensor
         value = value.detach().cpu().numpy()
-    m = np.asarray(value, dtype=np.float64)
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{what} must be a 4x4 matrix or a Transform, got {value!r}") from None
     if m.shape != (4, 4):
         raise ValueError(f"{what} must be a 4x4 matrix or a Transform, got shape {m.shape}")
     return m
