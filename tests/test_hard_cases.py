@@ -375,6 +375,17 @@ def test18_non_finite_texel_is_an_error_naming_the_texture(tmp_path):
         tr.render(scene, spp=1)
 
 
+def test18b_exr_with_a_non_finite_texel_is_refused_at_load(tmp_path):
+    # Mitsuba reads it and renders a dark image; we name the file and the texel.
+    texels = torch.full((4, 4, 3), 0.5)
+    texels[2, 1, 1] = float("inf")
+    tr.write_image(tmp_path / "bad.exr", texels)
+    with pytest.raises(tr.SceneError, match=r"bad\.exr.*non-finite.*row 2, column 1, channel 1"):
+        tr.load_dict({"type": "scene", "sensor": _sensor(4),
+                      "plane": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {
+                          "type": "bitmap", "filename": str(tmp_path / "bad.exr")}}}})
+
+
 def test19_non_finite_samples_are_counted_and_reported():
     # Finite inputs whose product overflows: samples that become infinite inside the
     # integrator are dropped from the image and reported, never silently.

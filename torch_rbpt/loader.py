@@ -330,6 +330,12 @@ class _Builder:
         elif image.shape[2] == 2:
             image = image[:, :, :1]
         h, w, c = image.shape
+        bad = (~torch.isfinite(image)).nonzero()
+        if len(bad):
+            y, x, ch = (int(v) for v in bad[0])
+            self.fail(node, f"bitmap '{path}': {len(bad)} non-finite texel value(s), the first "
+                            f"({float(image[y, x, ch])}) at row {y}, column {x}, channel {ch}; "
+                            f"texels must be finite")
         param = self.add_param(f"{key}.data", image.numpy())
         self.params[f"{key}.data"] = self.params[f"{key}.data"].reshape(h, w, c)
         filt = self.string(node, "filter_type", "bilinear", ("bilinear", "nearest"))
