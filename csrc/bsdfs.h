@@ -1,12 +1,19 @@
-// BSDFs with Mitsuba 3's semantics, in the local shading frame (z = normal). Each has
-//   eval(wi, wo)   = f(wi, wo) |cos(wo)|              (templated number type S),
-//   pdf(wi, wo)    = solid-angle density of sample()  (detached, float),
-//   sample(wi, u)  = optional {wo, pdf, eta, delta, weight = eval / pdf}.
+// BSDFs with Mitsuba 3's semantics, in the local shading frame (z = normal). Every BSDF is a
+// struct with the same interface, queried through a BSDFQuery (the BSDF record, the render's
+// parameter values and the BSDF's per-render state, the surface point):
+//   delta               whether it is purely specular (then it has no density to evaluate);
+//   eval(q, wi, wo)     = f(wi, wo) |cos(wo)|                  (templated number type S);
+//   pdf(q, wi, wo)      = solid-angle density of sample()      (detached, float);
+//   eval_pdf(q, wi, wo) = both at once, sharing their common terms (emitter sampling needs
+//                         both for every shadow ray);
+//   sample(q, wi, u1, u2) = optional {wo, pdf, eta, delta, weight = eval / pdf}.
+// A new BSDF is one such struct, a BSDFType and one line in visit_bsdf().
 // One-sided like Mitsuba: wi below the surface reflects nothing (use `twosided`), except the
 // dielectric, which has two sides by nature.
 #pragma once
 
 #include <optional>
+#include <type_traits>
 
 #include "math.h"
 #include "microfacet.h"
@@ -30,7 +37,7 @@ struct BSDF {
     bool nonlinear = false;  ///< roughplastic `nonlinear`
 
     /// Whether the BSDF has a non-delta component (then emitters are sampled at its surface).
-    bool smooth() const { return type != BSDFType::Conductor && type != BSDFType::Dielectric; }
+    inline bool smooth() const;
 };
 
 /// Roughplastic's precomputed rough-interface terms for one (distribution, alpha, eta): the
@@ -61,6 +68,13 @@ struct BSDFState {
     const RoughPlasticTables *dtables = nullptr;
 };
 
+/// A BSDF value and the density with which sample() produces the same direction.
+template <typename S>
+struct BSDFEval {
+    S value;
+    float pdf = 0.f;
+};
+
 template <typename S>
 struct BSDFSample {
     Vec3 wo;
@@ -74,118 +88,172 @@ struct BSDFSample {
 /// the cosine of the refracted direction (opposite sign to cos_i) and eta_it, eta_ti.
 float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti);
 
-namespace detail {
+/// Everything a BSDF query reads besides the directions.
+template <typename Ctx>
+struct BSDFQuery {
+    const BSDF &bsdf;
+    const Ctx &ctx;                ///< the render's parameter values (RenderContext<S>)
+    const BSDFState &state;        ///< per-render derived data of this BSDF
+    const SurfaceInteraction &si;  ///< the surface point (uv for textures)
 
-template <typename S, typename Ctx>
-S texture(const TextureRef &t, const Ctx &ctx, const SurfaceInteraction &si) {
-    return eval_texture<S>(t, ctx.bitmaps, ctx.params, si.uv);
-}
+    /// A texture input of this BSDF at the surface point.
+    template <typename S>
+    S texture(const TextureRef &t) const {
+        return eval_texture<S>(t, ctx.bitmaps, ctx.params, si.uv);
+    }
+    /// The roughness parameter, with its derivative (R = real_t<S>) or detached (float, read
+    /// straight from the values so that autodiff types record nothing).
+    template <typename R>
+    R alpha() const {
+        if constexpr (std::is_same_v<R, float>) {
+            return float(ctx.params.data[bsdf.alpha][0]);
+        } else {
+            return ctx.params.real(bsdf.alpha);
+        }
+    }
+};
 
-}  // namespace detail
+/// Whether the number type S is plain float, for which eval and pdf can share their terms
+/// exactly (autodiff types evaluate the value with derivatives and the density detached).
+template <typename S>
+constexpr bool plain_float = std::is_same_v<real_t<S>, float>;
+
+/// Purely specular BSDFs: no density to evaluate, only sampling.
+struct DeltaBSDF {
+    static constexpr bool delta = true;
+    template <typename S, typename Ctx>
+    static S eval(const BSDFQuery<Ctx> &, const Vec3 &, const Vec3 &) {
+        return S(0.f);
+    }
+    template <typename Ctx>
+    static float pdf(const BSDFQuery<Ctx> &, const Vec3 &, const Vec3 &) {
+        return 0.f;
+    }
+    template <typename S, typename Ctx>
+    static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &, const Vec3 &, const Vec3 &) {
+        return {S(0.f), 0.f};
+    }
+};
 
 /// Lambertian reflector: f = reflectance / pi.
 struct DiffuseBSDF {
+    static constexpr bool delta = false;
     template <typename S, typename Ctx>
-    static S eval(const BSDF &b, const Ctx &ctx, const SurfaceInteraction &si, const Vec3 &wi,
-                  const Vec3 &wo) {
+    static S eval(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
         if (wi.z <= 0.f || wo.z <= 0.f) return S(0.f);
-        return detail::texture<S>(b.reflectance, ctx, si) * real_t<S>(InvPi * wo.z);
+        return q.template texture<S>(q.bsdf.reflectance) * real_t<S>(InvPi * wo.z);
     }
-    static float pdf(const Vec3 &wi, const Vec3 &wo) {
+    template <typename Ctx>
+    static float pdf(const BSDFQuery<Ctx> &, const Vec3 &wi, const Vec3 &wo) {
         return (wi.z > 0.f && wo.z > 0.f) ? warp::square_to_cosine_hemisphere_pdf(wo) : 0.f;
     }
     template <typename S, typename Ctx>
-    static std::optional<BSDFSample<S>> sample(const BSDF &b, const Ctx &ctx,
-                                               const SurfaceInteraction &si, const Vec3 &wi,
-                                               float, Vec2 u) {
+    static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        return {eval<S>(q, wi, wo), pdf(q, wi, wo)};
+    }
+    template <typename S, typename Ctx>
+    static std::optional<BSDFSample<S>> sample(const BSDFQuery<Ctx> &q, const Vec3 &wi, float,
+                                               Vec2 u) {
         if (wi.z <= 0.f) return std::nullopt;
         BSDFSample<S> bs;
         bs.wo = warp::square_to_cosine_hemisphere(u);
-        bs.pdf = pdf(wi, bs.wo);
+        bs.pdf = pdf(q, wi, bs.wo);
         if (bs.pdf <= 0.f) return std::nullopt;
-        bs.weight = detail::texture<S>(b.reflectance, ctx, si);
+        bs.weight = q.template texture<S>(q.bsdf.reflectance);
         return bs;
     }
 };
 
 /// Ideal mirror (Mitsuba's conductor with material "none"): F = specular_reflectance.
-struct ConductorBSDF {
+struct ConductorBSDF : DeltaBSDF {
     template <typename S, typename Ctx>
-    static std::optional<BSDFSample<S>> sample(const BSDF &b, const Ctx &ctx,
-                                               const SurfaceInteraction &si, const Vec3 &wi,
-                                               float, Vec2) {
+    static std::optional<BSDFSample<S>> sample(const BSDFQuery<Ctx> &q, const Vec3 &wi, float,
+                                               Vec2) {
         if (wi.z <= 0.f) return std::nullopt;
         BSDFSample<S> bs;
         bs.wo = {-wi.x, -wi.y, wi.z};
         bs.pdf = 1.f;
         bs.delta = true;
-        bs.weight = detail::texture<S>(b.specular_reflectance, ctx, si);
+        bs.weight = q.template texture<S>(q.bsdf.specular_reflectance);
         return bs;
     }
 };
 
 /// Rough mirror: f = F D(h) G(wi, wo, h) / (4 cos_i cos_o), F = specular_reflectance.
-/// Samples visible normals (weight = eval / pdf, which equals F G1(wo, m)).
+/// Samples visible normals: pdf = D(h) G1(wi, h) / (4 cos_i).
 struct RoughConductorBSDF {
+    static constexpr bool delta = false;
+    /// D(h) G1(wi, h) / (4 cos_i) and h, or zero where wi, wo or h face away.
+    template <typename R, typename Ctx>
+    static R lobe(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo, Vec3 *h) {
+        *h = normalize(wi + wo);
+        R alpha = q.template alpha<R>();
+        return microfacet_D(q.bsdf.distribution, alpha, *h) *
+               smith_G1(q.bsdf.distribution, alpha, wi, *h) / (4.f * wi.z);
+    }
     template <typename S, typename Ctx>
-    static S eval(const BSDF &b, const Ctx &ctx, const SurfaceInteraction &si, const Vec3 &wi,
-                  const Vec3 &wo) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return S(0.f);
-        Vec3 h = normalize(wi + wo);
-        real_t<S> alpha = ctx.params.real(b.alpha);
-        real_t<S> value = microfacet_D(b.distribution, alpha, h) *
-                          smith_G1(b.distribution, alpha, wi, h) *
-                          smith_G1(b.distribution, alpha, wo, h) / (4.f * wi.z);
-        return detail::texture<S>(b.specular_reflectance, ctx, si) * value;
+    static S eval(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        return eval_pdf<S>(q, wi, wo).value;
     }
     template <typename Ctx>
-    static float pdf(const BSDF &b, const Ctx &ctx, const Vec3 &wi, const Vec3 &wo) {
+    static float pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
         if (wi.z <= 0.f || wo.z <= 0.f) return 0.f;
-        Vec3 h = normalize(wi + wo);
-        if (dot(wi, h) <= 0.f || dot(wo, h) <= 0.f) return 0.f;
-        float alpha = detach_real(ctx.params.real(b.alpha));
-        return microfacet_D(b.distribution, alpha, h) * smith_G1(b.distribution, alpha, wi, h) /
-               (4.f * wi.z);
+        Vec3 h;
+        float value = lobe<float>(q, wi, wo, &h);
+        return dot(wi, h) > 0.f && dot(wo, h) > 0.f ? value : 0.f;
     }
     template <typename S, typename Ctx>
-    static std::optional<BSDFSample<S>> sample(const BSDF &b, const Ctx &ctx,
-                                               const SurfaceInteraction &si, const Vec3 &wi,
-                                               float, Vec2 u) {
+    static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        if (wi.z <= 0.f || wo.z <= 0.f) return {S(0.f), 0.f};
+        Vec3 h;
+        real_t<S> l = lobe<real_t<S>>(q, wi, wo, &h);
+        real_t<S> g = smith_G1(q.bsdf.distribution, q.template alpha<real_t<S>>(), wo, h);
+        S value = q.template texture<S>(q.bsdf.specular_reflectance) * (l * g);
+        float density = 0.f;
+        if constexpr (plain_float<S>) {
+            density = dot(wi, h) > 0.f && dot(wo, h) > 0.f ? l : 0.f;
+        } else {
+            density = pdf(q, wi, wo);
+        }
+        return {value, density};
+    }
+    template <typename S, typename Ctx>
+    static std::optional<BSDFSample<S>> sample(const BSDFQuery<Ctx> &q, const Vec3 &wi, float,
+                                               Vec2 u) {
         if (wi.z <= 0.f) return std::nullopt;
-        float alpha_d = detach_real(ctx.params.real(b.alpha));
-        Vec3 m = sample_visible_normal(b.distribution, alpha_d, wi, u);
+        Vec3 m = sample_visible_normal(q.bsdf.distribution, q.template alpha<float>(), wi, u);
         BSDFSample<S> bs;
         bs.wo = reflect(wi, m);
         if (bs.wo.z <= 0.f) return std::nullopt;
-        bs.pdf = pdf(b, ctx, wi, bs.wo);
+        BSDFEval<S> e = eval_pdf<S>(q, wi, bs.wo);
+        bs.pdf = e.pdf;
         if (!(bs.pdf > 0.f)) return std::nullopt;
         // eval / pdf with the pdf detached (not the simplified F G1(wo)): sampling carries
         // no derivative, so the weight's derivative must be d(eval)/d(theta) / pdf.
-        bs.weight = eval<S>(b, ctx, si, wi, bs.wo) / real_t<S>(bs.pdf);
+        bs.weight = e.value / real_t<S>(bs.pdf);
         return bs;
     }
 };
 
 /// Smooth dielectric interface: reflect with probability F, refract otherwise. Transmitted
 /// radiance is scaled by 1/eta^2 (radiance transport), as in Mitsuba.
-struct DielectricBSDF {
+struct DielectricBSDF : DeltaBSDF {
     template <typename S, typename Ctx>
-    static std::optional<BSDFSample<S>> sample(const BSDF &b, const Ctx &ctx,
-                                               const SurfaceInteraction &si, const Vec3 &wi,
-                                               float u1, Vec2) {
+    static std::optional<BSDFSample<S>> sample(const BSDFQuery<Ctx> &q, const Vec3 &wi, float u1,
+                                               Vec2) {
         float cos_t, eta_it, eta_ti;
-        float r = fresnel_dielectric(wi.z, b.eta, &cos_t, &eta_it, &eta_ti);
+        float r = fresnel_dielectric(wi.z, q.bsdf.eta, &cos_t, &eta_it, &eta_ti);
         BSDFSample<S> bs;
         bs.delta = true;
         if (u1 <= r) {
             bs.wo = {-wi.x, -wi.y, wi.z};
             bs.pdf = r;
-            bs.weight = detail::texture<S>(b.specular_reflectance, ctx, si);
+            bs.weight = q.template texture<S>(q.bsdf.specular_reflectance);
         } else {
             bs.wo = {-eta_ti * wi.x, -eta_ti * wi.y, cos_t};
             bs.pdf = 1.f - r;
             bs.eta = eta_it;
-            bs.weight = detail::texture<S>(b.specular_transmittance, ctx, si) *
+            bs.weight = q.template texture<S>(q.bsdf.specular_transmittance) *
                         real_t<S>(eta_ti * eta_ti);
         }
         if (!(bs.pdf > 0.f)) return std::nullopt;
@@ -197,38 +265,9 @@ struct DielectricBSDF {
 /// diffuse base seen through it:
 ///   diffuse = rho / (1 - R_int) * t(cos_i) t(cos_o) cos_o / (pi eta^2),
 /// with rho = diffuse_reflectance (rho R_int in the denominator when `nonlinear`).
+/// Samples the specular lobe with probability specular_probability(cos_i), else the cosine.
 struct RoughPlasticBSDF {
-    template <typename S, typename Ctx>
-    static S eval(const BSDF &b, const Ctx &ctx, const SurfaceInteraction &si, const Vec3 &wi,
-                  const Vec3 &wo, const BSDFState &state) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return S(0.f);
-        const RoughPlasticTables &tab = *state.tables;
-        Vec3 h = normalize(wi + wo);
-        real_t<S> alpha = ctx.params.real(b.alpha);
-        float cos_t, eta_it, eta_ti;
-        float F = fresnel_dielectric(dot(wi, h), b.eta, &cos_t, &eta_it, &eta_ti);
-        real_t<S> spec = F * microfacet_D(b.distribution, alpha, h) *
-                         smith_G1(b.distribution, alpha, wi, h) *
-                         smith_G1(b.distribution, alpha, wo, h) / (4.f * wi.z);
-        S value = detail::texture<S>(b.specular_reflectance, ctx, si) * spec;
-        // The rough-interface terms depend on alpha through the tables; to first order,
-        // t(alpha) = t(alpha0) + dt/dalpha (alpha - alpha0), with dt/dalpha tabulated.
-        real_t<S> t_i = tab.transmittance(wi.z), t_o = tab.transmittance(wo.z);
-        real_t<S> r_int = tab.internal_reflectance;
-        if (state.dtables) {
-            real_t<S> dalpha = alpha - no_grad(alpha);
-            t_i = t_i + state.dtables->transmittance(wi.z) * dalpha;
-            t_o = t_o + state.dtables->transmittance(wo.z) * dalpha;
-            r_int = r_int + state.dtables->internal_reflectance * dalpha;
-        }
-        S diff = detail::texture<S>(b.reflectance, ctx, si);
-        if (b.nonlinear) {
-            diff = diff / (real_t<S>(1) - diff * r_int);
-        } else {
-            diff = diff / (real_t<S>(1) - r_int);
-        }
-        return value + diff * (t_i * t_o * real_t<S>(InvPi / (b.eta * b.eta) * wo.z));
-    }
+    static constexpr bool delta = false;
     /// Probability of sampling the specular lobe at incidence cos_i.
     static float specular_probability(const BSDFState &state, float cos_i) {
         float t_i = state.tables->transmittance(cos_i);
@@ -236,37 +275,101 @@ struct RoughPlasticBSDF {
         float pd = t_i * (1.f - state.specular_sampling_weight);
         return ps + pd > 0.f ? ps / (ps + pd) : 0.5f;
     }
+    /// D(h) G1(wi, h) / (4 cos_i): the specular lobe's visible-normal density.
+    template <typename R, typename Ctx>
+    static R lobe(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &h) {
+        R alpha = q.template alpha<R>();
+        return microfacet_D(q.bsdf.distribution, alpha, h) *
+               smith_G1(q.bsdf.distribution, alpha, wi, h) / (4.f * wi.z);
+    }
     template <typename Ctx>
-    static float pdf(const BSDF &b, const Ctx &ctx, const Vec3 &wi, const Vec3 &wo,
-                     const BSDFState &state) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return 0.f;
-        float ps = specular_probability(state, wi.z);
-        Vec3 h = normalize(wi + wo);
-        float alpha = detach_real(ctx.params.real(b.alpha));
-        float spec = microfacet_D(b.distribution, alpha, h) *
-                     smith_G1(b.distribution, alpha, wi, h) / (4.f * wi.z);
+    static float density(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo, float spec) {
+        float ps = specular_probability(q.state, wi.z);
         return ps * spec + (1.f - ps) * warp::square_to_cosine_hemisphere_pdf(wo);
     }
     template <typename S, typename Ctx>
-    static std::optional<BSDFSample<S>> sample(const BSDF &b, const Ctx &ctx,
-                                               const SurfaceInteraction &si, const Vec3 &wi,
-                                               float u1, Vec2 u, const BSDFState &state) {
+    static S eval(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        return eval_pdf<S>(q, wi, wo).value;
+    }
+    template <typename Ctx>
+    static float pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        if (wi.z <= 0.f || wo.z <= 0.f) return 0.f;
+        return density(q, wi, wo, lobe<float>(q, wi, normalize(wi + wo)));
+    }
+    template <typename S, typename Ctx>
+    static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
+        using R = real_t<S>;
+        if (wi.z <= 0.f || wo.z <= 0.f) return {S(0.f), 0.f};
+        const BSDF &b = q.bsdf;
+        const RoughPlasticTables &tab = *q.state.tables;
+        Vec3 h = normalize(wi + wo);
+        R alpha = q.template alpha<R>();
+        float cos_t, eta_it, eta_ti;
+        float F = fresnel_dielectric(dot(wi, h), b.eta, &cos_t, &eta_it, &eta_ti);
+        R l = lobe<R>(q, wi, h);
+        R spec = F * l * smith_G1(b.distribution, alpha, wo, h);
+        S value = q.template texture<S>(b.specular_reflectance) * spec;
+        // The rough-interface terms depend on alpha through the tables; to first order,
+        // t(alpha) = t(alpha0) + dt/dalpha (alpha - alpha0), with dt/dalpha tabulated.
+        R t_i = tab.transmittance(wi.z), t_o = tab.transmittance(wo.z);
+        R r_int = tab.internal_reflectance;
+        if (q.state.dtables) {
+            R dalpha = alpha - no_grad(alpha);
+            t_i = t_i + q.state.dtables->transmittance(wi.z) * dalpha;
+            t_o = t_o + q.state.dtables->transmittance(wo.z) * dalpha;
+            r_int = r_int + q.state.dtables->internal_reflectance * dalpha;
+        }
+        S diff = q.template texture<S>(b.reflectance);
+        if (b.nonlinear) {
+            diff = diff / (R(1) - diff * r_int);
+        } else {
+            diff = diff / (R(1) - r_int);
+        }
+        value = value + diff * (t_i * t_o * R(InvPi / (b.eta * b.eta) * wo.z));
+        float pdf_value;
+        if constexpr (plain_float<S>) {
+            pdf_value = density(q, wi, wo, l);
+        } else {
+            pdf_value = pdf(q, wi, wo);
+        }
+        return {value, pdf_value};
+    }
+    template <typename S, typename Ctx>
+    static std::optional<BSDFSample<S>> sample(const BSDFQuery<Ctx> &q, const Vec3 &wi, float u1,
+                                               Vec2 u) {
         if (wi.z <= 0.f) return std::nullopt;
         BSDFSample<S> bs;
-        if (u1 < specular_probability(state, wi.z)) {
-            float alpha = detach_real(ctx.params.real(b.alpha));
-            bs.wo = reflect(wi, sample_visible_normal(b.distribution, alpha, wi, u));
+        if (u1 < specular_probability(q.state, wi.z)) {
+            bs.wo = reflect(wi, sample_visible_normal(q.bsdf.distribution, q.template alpha<float>(), wi, u));
         } else {
             bs.wo = warp::square_to_cosine_hemisphere(u);
         }
-        bs.pdf = pdf(b, ctx, wi, bs.wo, state);
+        BSDFEval<S> e = eval_pdf<S>(q, wi, bs.wo);
+        bs.pdf = e.pdf;
         if (!(bs.pdf > 0.f)) return std::nullopt;
-        bs.weight = eval<S>(b, ctx, si, wi, bs.wo, state) / real_t<S>(bs.pdf);
+        bs.weight = e.value / real_t<S>(bs.pdf);
         return bs;
     }
 };
 
-// ---- Dispatch on the BSDF type (static: a switch, no virtual calls) ----------------------
+// ---- Dispatch on the BSDF type (static: one switch, no virtual calls) --------------------
+
+/// Call f with a value of the BSDF struct of `type` (the only switch over BSDF types).
+template <typename F>
+decltype(auto) visit_bsdf(BSDFType type, F &&f) {
+    switch (type) {
+        case BSDFType::Diffuse: return f(DiffuseBSDF{});
+        case BSDFType::Conductor: return f(ConductorBSDF{});
+        case BSDFType::RoughConductor: return f(RoughConductorBSDF{});
+        case BSDFType::Dielectric: return f(DielectricBSDF{});
+        case BSDFType::RoughPlastic: return f(RoughPlasticBSDF{});
+    }
+    return f(DiffuseBSDF{});  // not reached: every type is listed above
+}
+
+inline bool BSDF::smooth() const {
+    return visit_bsdf(type, [](auto b) { return !decltype(b)::delta; });
+}
 
 /// Mirror directions into the upper hemisphere for `twosided` BSDFs seen from below.
 inline bool flip_side(const BSDF &b, Vec3 *wi, Vec3 *wo) {
@@ -276,30 +379,34 @@ inline bool flip_side(const BSDF &b, Vec3 *wi, Vec3 *wo) {
     return true;
 }
 
+template <typename Ctx>
+BSDFQuery<Ctx> make_query(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteraction &si) {
+    return {b, ctx, ctx.bsdf_state[index], si};
+}
+
 template <typename S, typename Ctx>
 S bsdf_eval(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteraction &si, Vec3 wo) {
     Vec3 wi = si.wi;
     flip_side(b, &wi, &wo);
-    switch (b.type) {
-        case BSDFType::Diffuse: return DiffuseBSDF::eval<S>(b, ctx, si, wi, wo);
-        case BSDFType::RoughConductor: return RoughConductorBSDF::eval<S>(b, ctx, si, wi, wo);
-        case BSDFType::RoughPlastic:
-            return RoughPlasticBSDF::eval<S>(b, ctx, si, wi, wo, ctx.bsdf_state[index]);
-        default: return S(0.f);  // delta BSDFs have no density to evaluate
-    }
+    auto q = make_query(b, ctx, index, si);
+    return visit_bsdf(b.type, [&](auto bsdf) { return decltype(bsdf)::template eval<S>(q, wi, wo); });
 }
 
 template <typename Ctx>
 float bsdf_pdf(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteraction &si, Vec3 wo) {
     Vec3 wi = si.wi;
     flip_side(b, &wi, &wo);
-    switch (b.type) {
-        case BSDFType::Diffuse: return DiffuseBSDF::pdf(wi, wo);
-        case BSDFType::RoughConductor: return RoughConductorBSDF::pdf(b, ctx, wi, wo);
-        case BSDFType::RoughPlastic:
-            return RoughPlasticBSDF::pdf(b, ctx, wi, wo, ctx.bsdf_state[index]);
-        default: return 0.f;
-    }
+    auto q = make_query(b, ctx, index, si);
+    return visit_bsdf(b.type, [&](auto bsdf) { return decltype(bsdf)::pdf(q, wi, wo); });
+}
+
+template <typename S, typename Ctx>
+BSDFEval<S> bsdf_eval_pdf(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteraction &si,
+                          Vec3 wo) {
+    Vec3 wi = si.wi;
+    flip_side(b, &wi, &wo);
+    auto q = make_query(b, ctx, index, si);
+    return visit_bsdf(b.type, [&](auto bsdf) { return decltype(bsdf)::template eval_pdf<S>(q, wi, wo); });
 }
 
 template <typename S, typename Ctx>
@@ -307,18 +414,8 @@ std::optional<BSDFSample<S>> bsdf_sample(const BSDF &b, const Ctx &ctx, int inde
                                          const SurfaceInteraction &si, float u1, Vec2 u2) {
     Vec3 wi = si.wi;
     bool flipped = flip_side(b, &wi, nullptr);
-    std::optional<BSDFSample<S>> bs;
-    switch (b.type) {
-        case BSDFType::Diffuse: bs = DiffuseBSDF::sample<S>(b, ctx, si, wi, u1, u2); break;
-        case BSDFType::Conductor: bs = ConductorBSDF::sample<S>(b, ctx, si, wi, u1, u2); break;
-        case BSDFType::RoughConductor:
-            bs = RoughConductorBSDF::sample<S>(b, ctx, si, wi, u1, u2);
-            break;
-        case BSDFType::Dielectric: bs = DielectricBSDF::sample<S>(b, ctx, si, wi, u1, u2); break;
-        case BSDFType::RoughPlastic:
-            bs = RoughPlasticBSDF::sample<S>(b, ctx, si, wi, u1, u2, ctx.bsdf_state[index]);
-            break;
-    }
+    auto q = make_query(b, ctx, index, si);
+    auto bs = visit_bsdf(b.type, [&](auto bsdf) { return decltype(bsdf)::template sample<S>(q, wi, u1, u2); });
     if (bs && flipped) bs->wo.z = -bs->wo.z;
     return bs;
 }

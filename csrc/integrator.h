@@ -51,6 +51,16 @@ inline Color3f roulette_factor(const S &weight) {
     return is_null(weight) || !is_zero(weight) ? detach(weight) : Color3f(1.f);
 }
 
+/// The BSDF towards a sampled emitter direction, with its density unless the emitter is a
+/// delta light (whose samples are never MIS-weighted).
+template <typename S>
+BSDFEval<S> bsdf_eval_for(const BSDF &bsdf, const RenderContext<S> &ctx, int index,
+                          const SurfaceInteraction &si, const EmitterSample<S> &es) {
+    Vec3 wo = si.to_local(es.d);
+    if (es.delta) return {bsdf_eval<S>(bsdf, ctx, index, si, wo), 0.f};
+    return bsdf_eval_pdf<S>(bsdf, ctx, index, si, wo);
+}
+
 template <typename S>
 S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
     const Scene &scene = ctx.scene;
@@ -83,11 +93,9 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
             if (es && !is_null(es->weight)) {
                 Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
                 if (!scene.occluded(shadow)) {
-                    Vec3 wo = si.to_local(es->d);
-                    S f = bsdf_eval<S>(bsdf, ctx, bsdf_index, si, wo);
-                    float w = es->delta ? 1.f
-                                        : mis_weight(es->pdf, bsdf_pdf(bsdf, ctx, bsdf_index, si, wo));
-                    L += beta * f * es->weight * real_t<S>(w);
+                    BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+                    float w = es->delta ? 1.f : mis_weight(es->pdf, f.pdf);
+                    L += beta * f.value * es->weight * real_t<S>(w);
                 }
             }
         }
@@ -142,12 +150,9 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
             if (!es || is_null(es->weight)) continue;
             Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
             if (scene.occluded(shadow)) continue;
-            Vec3 wo = si.to_local(es->d);
-            S f = bsdf_eval<S>(bsdf, ctx, bsdf_index, si, wo);
-            float w = es->delta ? 1.f
-                                : mis_weight(es->pdf * frac_e,
-                                             bsdf_pdf(bsdf, ctx, bsdf_index, si, wo) * frac_b);
-            L += f * es->weight * real_t<S>(w / n_e);
+            BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+            float w = es->delta ? 1.f : mis_weight(es->pdf * frac_e, f.pdf * frac_b);
+            L += f.value * es->weight * real_t<S>(w / n_e);
         }
     }
 
