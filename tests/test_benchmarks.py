@@ -1,0 +1,58 @@
+"""The benchmarks run in their smoke settings (ours only, no Mitsuba needed)."""
+import csv
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, SHARED
+
+
+def load_benchmark(name: str):
+    """Import benchmarks/<name>.py as a module (its folder on sys.path for mitsuba_ref)."""
+    folder = ROOT / "benchmarks"
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
+def test01_error_time_quick(tmp_path):
+    bench = load_benchmark("bench_error_time")
+    results = bench.main(["--quick", "--scenes", "cbox", "--no-mitsuba",
+                          "--out", str(tmp_path / "results"), "--cache", str(tmp_path / "cache")])
+    assert [sc["name"] for sc in results] == ["cbox"]
+    with open(tmp_path / "results" / "error_time.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["scene"], r["renderer"], int(r["spp"])) for r in rows] == [
+        ("cbox", "torch_rbpt", 4), ("cbox", "torch_rbpt", 16)]
+    for r in rows:
+        assert (int(r["width"]), int(r["height"])) == (64, 64)
+        for key in ("seconds", "rmse", "rel_error", "mrays_per_s"):
+            v = float(r[key])
+            assert math.isfinite(v) and v > 0, (key, r[key])
+        assert r["cpu"] and int(r["cores"]) >= 1 and r["date"]
+        assert r["reference"] == "cbox_64x64_256spp_ours.exr"
+    # 4x the samples: the error drops (by about 2x)
+    assert float(rows[1]["rmse"]) < 0.8 * float(rows[0]["rmse"])
+    assert (tmp_path / "cache" / "cbox_64x64_256spp_ours.exr").exists()
+    assert (tmp_path / "results" / "error_time_cbox.png").exists()
+    assert (tmp_path / "results" / "error_time.png").exists()
+
+
+def test02_time_at_error():
+    bench = load_benchmark("bench_error_time")
+    curve = [(1.0, 0.4), (4.0, 0.2), (16.0, 0.1)]
+    t, ext = bench.time_at_error(curve, 0.2)
+    assert t == pytest.approx(4.0) and not ext
+    t, ext = bench.time_at_error(curve, 0.4 / math.sqrt(2))  # halfway in log-log
+    assert t == pytest.approx(2.0) and not ext
+    t, ext = bench.time_at_error(curve, 0.05)  # beyond: error ~ time^-1/2
+    assert t == pytest.approx(64.0) and ext
+    t, ext = bench.time_at_error(curve, 0.8)
+    assert t == pytest.approx(0.25) and ext
