@@ -248,10 +248,27 @@ def run_rays(quick: bool, use_embree: bool, mesh: str = "bunny", threads: str = 
                     "prim_diff": int(chk["prim_diff"]) if chk else "",
                 })
     builds = {f"{x['impl']}_{x['threads']}": float(x["ms"]) for x in recs if x["record"] == "BUILD"}
-    info = next(x for x in recs if x["record"] == "INFO")
+    info = {k: v for x in recs if x["record"] == "INFO" for k, v in x.items()}
     return {"rows": rows, "builds": builds, "embree": with_embree, "triangles": int(info["triangles"]),
             "checks": checks, "mismatch_lines": [x for x in recs if x["record"] == "MISMATCH"],
-            "res": res, "stdout": r.stdout}
+            "res": res, "embree_version": embree_version(info.get("embree_version")), "stdout": r.stdout}
+
+
+def embree_version(code: str | None) -> str:
+    """'3.13.5' from Embree's RTC_DEVICE_PROPERTY_VERSION (30000 + 100 * minor + patch)."""
+    if not code:
+        return ""
+    v = int(code)
+    return f"{v // 10000}.{v // 100 % 100}.{v % 100}"
+
+
+def simd_flags() -> str:
+    """The widest x86 vector extensions of the CPU (Embree picks its code path from them)."""
+    try:
+        flags = next(l for l in open("/proc/cpuinfo") if l.startswith("flags")).split()
+    except (OSError, StopIteration):
+        return "unknown"
+    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "sse2")
 
 
 def report_rays(out: dict, mach: str) -> list[dict]:
@@ -260,6 +277,9 @@ def report_rays(out: dict, mach: str) -> list[dict]:
     print(f"\nRay throughput, bunny ({out['triangles']} triangles): incoherent = random origins in the box "
           f"enlarged 2x, uniform directions; coherent = pinhole camera {out['res']}x{out['res']}")
     print(f"machine: {mach}")
+    print(f"ours: setup.py's flags (-O3, SSE2 baseline, no -march); "
+          + (f"Embree {out['embree_version']} (chooses its ISA at run time; CPU has {simd_flags()})"
+             if out["embree"] else "Embree: skipped"))
     print("Mrays/s, best of the repeats; Embree x1 = rtcIntersect1/rtcOccluded1 per ray (as our renderer "
           "calls its BVH),\nx4/x8 = rtcIntersect4/8 packets; scaling = this thread count over 1 thread; "
           "mismatch = ours vs Embree x1 (hit/miss or t off by > 1e-4 rel.)\n")
@@ -294,7 +314,8 @@ def report_rays(out: dict, mach: str) -> list[dict]:
           ("met" if not low else "NOT met for " + ", ".join(f"{r['rays']} ({r['ours_scaling']:.2f}x)" for r in low)))
     csv_rows = [{**r, "triangles": out["triangles"],
                  "build_ms_ours": b.get("ours_1"), "build_ms_embree_1thread": b.get("embree_1"),
-                 "build_ms_embree_pool": b.get("embree_all"), "machine": mach} for r in rows]
+                 "build_ms_embree_pool": b.get("embree_all"), "embree_version": out["embree_version"],
+                 "machine": mach} for r in rows]
     return csv_rows
 
 

@@ -305,6 +305,8 @@ int main(int argc, char **argv) {
                 }
             }
             std::printf("BUILD impl=embree threads=%s ms=%.3f\n", pass == 1 ? "1" : "all", best_e * 1e3);
+            if (pass == 1)
+                std::printf("INFO embree_version=%ld\n", long(rtcGetDeviceProperty(dev, RTC_DEVICE_PROPERTY_VERSION)));
             if (pass == 0) rtcReleaseDevice(dev);
         }
     }
