@@ -1,0 +1,56 @@
+"""The gradient benchmarks (benchmarks/bench_grad_error.py, benchmarks/bench_tutorial.py) run
+in their --quick --no-mitsuba settings and write CSV rows with finite values."""
+import csv
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_benchmark(name: str):
+    folder = ROOT / "benchmarks"
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def read_csv(path: Path) -> list:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test01_grad_error_quick(tmp_path):
+    bench = load_benchmark("bench_grad_error")
+    bench.main(["--quick", "--no-mitsuba", "--out", str(tmp_path / "results"),
+                "--cache", str(tmp_path / "cache")])
+    rows = read_csv(tmp_path / "results" / "grad_error.csv")
+    kinds = {r["kind"] for r in rows}
+    assert kinds == {"reflectance", "texture", "roughness", "roughplastic"}
+    assert len(rows) == 4 * 2  # two spp per kind, ours only
+    for r in rows:
+        assert r["renderer"] == "torch_rbpt" and r["reference"] == "torch_rbpt"
+        for col in ("time_s", "err", "err_corr", "fom"):
+            assert math.isfinite(float(r[col])) and float(r[col]) >= 0, (r["kind"], col, r[col])
+        assert float(r["time_s"]) > 0
+    for name in ("grad_error.png", "grad_error_reflectance.png", "grad_error_texture.png"):
+        assert (tmp_path / "results" / name).exists()
+    # The second run reads the cached references.
+    assert list((tmp_path / "cache").glob("gradref_*.npz"))
+
+
+def test02_tutorial_quick(tmp_path):
+    bench = load_benchmark("bench_tutorial")
+    bench.main(["--quick", "--no-mitsuba", "--out", str(tmp_path)])
+    rows = read_csv(tmp_path / "tutorial.csv")
+    assert [r["renderer"] for r in rows] == ["torch_rbpt"]
+    r = rows[0]
+    for col in ("cold_s", "cold_no_ref_s", "warm_ms", "error", "final_loss"):
+        assert math.isfinite(float(r[col])) and float(r[col]) >= 0, (col, r[col])
+    assert float(r["cold_no_ref_s"]) <= float(r["cold_s"])
+    # 12 iterations from (0.01, 0.2, 0.9), 0.55 RMS away from the truth: it must move towards it.
+    assert float(r["error"]) < 0.55
