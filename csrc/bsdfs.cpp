@@ -49,8 +49,15 @@ void gauss_legendre(int n, std::vector<double> *nodes, std::vector<double> *weig
 float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float eta,
                       bool transmit) {
     int res = eta > 1.f ? 32 : 128;
-    std::vector<double> nodes, weights;
-    gauss_legendre(res, &nodes, &weights);
+    // The nodes and weights of both resolutions, computed once.
+    static const auto rule = [](int n) {
+        std::pair<std::vector<double>, std::vector<double>> r;
+        gauss_legendre(n, &r.first, &r.second);
+        return r;
+    };
+    static const auto rule32 = rule(32), rule128 = rule(128);
+    const std::vector<double> &nodes = res == 32 ? rule32.first : rule128.first;
+    const std::vector<double> &weights = res == 32 ? rule32.second : rule128.second;
     double sum = 0.0;
     for (int i = 0; i < res; ++i) {
         for (int j = 0; j < res; ++j) {
@@ -78,14 +85,19 @@ void RoughPlasticTables::compute(MicrofacetType type_, float alpha_, float eta_)
     type = type_;
     alpha = alpha_;
     eta = eta_;
-    double internal = 0.0;
+    // Rows are independent quadratures (about a million BSDF samples in all): spread them over
+    // the cores, then sum the internal reflectance in row order (deterministic).
+    double internal[Resolution];
+#pragma omp parallel for schedule(dynamic, 1)
     for (int i = 0; i < Resolution; ++i) {
         float mu = std::max(1e-6f, float(i) / float(Resolution - 1));
         Vec3 wi{safe_sqrt(1.f - mu * mu), 0.f, mu};
         external_transmittance[i] = rough_interface(type, alpha, wi, eta, true);
-        internal += rough_interface(type, alpha, wi, 1.f / eta, false) * mu;
+        internal[i] = double(rough_interface(type, alpha, wi, 1.f / eta, false)) * mu;
     }
-    internal_reflectance = float(internal / Resolution * 2.0);
+    double sum = 0.0;
+    for (int i = 0; i < Resolution; ++i) sum += internal[i];
+    internal_reflectance = float(sum / Resolution * 2.0);
 }
 
 }  // namespace rbpt

@@ -53,7 +53,7 @@ struct RoughPlasticTables {
     void compute(MicrofacetType type, float alpha, float eta);
     /// Mitsuba's lerp_gather over the table at cos(theta) in [0, 1].
     float transmittance(float cos_theta) const {
-        float x = std::clamp(cos_theta, 0.f, 1.f) * float(Resolution - 1);
+        float x = (cos_theta > 0.f ? std::min(cos_theta, 1.f) : 0.f) * float(Resolution - 1);
         int i = std::min(int(x), Resolution - 2);
         float t = x - float(i);
         return external_transmittance[i] * (1.f - t) + external_transmittance[i + 1] * t;
@@ -140,12 +140,12 @@ struct DiffuseBSDF {
     static constexpr bool delta = false;
     template <typename S, typename Ctx>
     static S eval(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return S(0.f);
+        if (!(wi.z > 0.f && wo.z > 0.f)) return S(0.f);
         return q.template texture<S>(q.bsdf.reflectance) * real_t<S>(InvPi * wo.z);
     }
     template <typename Ctx>
     static float pdf(const BSDFQuery<Ctx> &, const Vec3 &wi, const Vec3 &wo) {
-        return (wi.z > 0.f && wo.z > 0.f) ? warp::square_to_cosine_hemisphere_pdf(wo) : 0.f;
+        return wi.z > 0.f && wo.z > 0.f ? warp::square_to_cosine_hemisphere_pdf(wo) : 0.f;
     }
     template <typename S, typename Ctx>
     static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
@@ -197,14 +197,14 @@ struct RoughConductorBSDF {
     }
     template <typename Ctx>
     static float pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return 0.f;
+        if (!(wi.z > 0.f && wo.z > 0.f)) return 0.f;
         Vec3 h;
         float value = lobe<float>(q, wi, wo, &h);
         return dot(wi, h) > 0.f && dot(wo, h) > 0.f ? value : 0.f;
     }
     template <typename S, typename Ctx>
     static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return {S(0.f), 0.f};
+        if (!(wi.z > 0.f && wo.z > 0.f)) return {S(0.f), 0.f};
         Vec3 h;
         real_t<S> l = lobe<real_t<S>>(q, wi, wo, &h);
         real_t<S> g = smith_G1(q.bsdf.distribution, q.template alpha<real_t<S>>(), wo, h);
@@ -224,7 +224,7 @@ struct RoughConductorBSDF {
         Vec3 m = sample_visible_normal(q.bsdf.distribution, q.template alpha<float>(), wi, u);
         BSDFSample<S> bs;
         bs.wo = reflect(wi, m);
-        if (bs.wo.z <= 0.f) return std::nullopt;
+        if (!(bs.wo.z > 0.f)) return std::nullopt;
         BSDFEval<S> e = eval_pdf<S>(q, wi, bs.wo);
         bs.pdf = e.pdf;
         if (!(bs.pdf > 0.f)) return std::nullopt;
@@ -293,13 +293,13 @@ struct RoughPlasticBSDF {
     }
     template <typename Ctx>
     static float pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
-        if (wi.z <= 0.f || wo.z <= 0.f) return 0.f;
+        if (!(wi.z > 0.f && wo.z > 0.f)) return 0.f;
         return density(q, wi, wo, lobe<float>(q, wi, normalize(wi + wo)));
     }
     template <typename S, typename Ctx>
     static BSDFEval<S> eval_pdf(const BSDFQuery<Ctx> &q, const Vec3 &wi, const Vec3 &wo) {
         using R = real_t<S>;
-        if (wi.z <= 0.f || wo.z <= 0.f) return {S(0.f), 0.f};
+        if (!(wi.z > 0.f && wo.z > 0.f)) return {S(0.f), 0.f};
         const BSDF &b = q.bsdf;
         const RoughPlasticTables &tab = *q.state.tables;
         Vec3 h = normalize(wi + wo);
