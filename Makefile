@@ -25,9 +25,15 @@ test: .installed
 test-slow: .installed
 	$(PYTHON) -m pytest -q -m slow tests
 
+# Speed against Mitsuba 3 and Embree 3 (each compared in the same run when installed:
+# `pip install mitsuba`, `apt-get install libllvm19 libembree-dev`); tables, CSV and plots go
+# to benchmarks/results/. The first run renders and caches converged references.
 bench: .installed
-	$(PYTHON) benchmarks/bench_render.py
+	$(PYTHON) benchmarks/bench_error_time.py
+	$(PYTHON) benchmarks/bench_grad_error.py
+	$(PYTHON) benchmarks/bench_tutorial.py
 	$(PYTHON) benchmarks/bench_gradients.py
+	$(PYTHON) benchmarks/bench_rays.py
 
 # Fuzz each loader (XML, dict, OBJ, PLY, images) for FUZZ_SECONDS seconds, one target at a
 # time, starting from fuzz/seeds/<target>; not part of `make test`. New inputs that reach new

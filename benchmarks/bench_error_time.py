@@ -4,7 +4,7 @@ For each scene, renders a converged reference once (Mitsuba at --ref-spp, cached
 benchmarks/cache/ by scene, size and spp; our own render when Mitsuba is absent, and the
 tables say so), then sweeps the samples per pixel with both renderers in the same run and
 measures, at each spp, the wall-clock time and the error against the reference: RMSE and
-the mean relative error mean |img - ref| / max(|ref|, 0.02) (bench_render.py's, the tests'
+the mean relative error mean |img - ref| / max(|ref|, 0.02) (the tests'
 metric). From the two curves it derives:
 
 * the equal-error time ratio: for Mitsuba's RMSE at each spp, the time we need to reach that

@@ -45,8 +45,10 @@ SHARED = ROOT.parent / "shared" / "scenes"
 BUNNY = SHARED / "meshes" / "bunny.ply"
 CBOX = SHARED / "cbox" / "cbox.xml"
 
-# setup.py's flags (plus -fwrapv, which setuptools adds from Python's own CFLAGS).
-CXX_FLAGS = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare", "-O3", "-DNDEBUG", "-fwrapv"]
+# setup.py's flags (plus -fwrapv, which setuptools adds from Python's own CFLAGS), including
+# -march=native unless PORTABLE=1, as for the extension.
+CXX_FLAGS = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare", "-O3", "-DNDEBUG", "-fwrapv",
+             "-ffp-contract=off"] + ([] if os.environ.get("PORTABLE", "0") == "1" else ["-march=native"])
 CORE_SOURCES = ["bvh.cpp", "shapes.cpp"]
 EMBREE_INSTALL = "apt-get install libembree-dev (Debian/Ubuntu), or set EMBREE_DIR to an Embree 3 install"
 
@@ -277,7 +279,7 @@ def report_rays(out: dict, mach: str) -> list[dict]:
     print(f"\nRay throughput, bunny ({out['triangles']} triangles): incoherent = random origins in the box "
           f"enlarged 2x, uniform directions; coherent = pinhole camera {out['res']}x{out['res']}")
     print(f"machine: {mach}")
-    print(f"ours: setup.py's flags (-O3, SSE2 baseline, no -march); "
+    print(f"ours: setup.py's flags ({' '.join(f for f in CXX_FLAGS if f.startswith(('-O', '-march')))}); "
           + (f"Embree {out['embree_version']} (chooses its ISA at run time; CPU has {simd_flags()})"
              if out["embree"] else "Embree: skipped"))
     print("Mrays/s, best of the repeats; Embree x1 = rtcIntersect1/rtcOccluded1 per ray (as our renderer "
