@@ -13,15 +13,26 @@ SHARED = ROOT.parent / "shared" / "scenes"
 REFERENCES = Path(__file__).resolve().parent / "references"
 
 
-def load_example(name: str):
-    """Import examples/<name>.py as a module (its folder on sys.path for shared helpers)."""
-    folder = ROOT / "examples"
-    if str(folder) not in sys.path:
-        sys.path.insert(0, str(folder))
-    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+def load_module(folder: str, name: str):
+    """Import <folder>/<name>.py of the repository as a module, with its folder on sys.path
+    (for the helpers the examples and benchmarks share)."""
+    path = ROOT / folder
+    if str(path) not in sys.path:
+        sys.path.insert(0, str(path))
+    spec = importlib.util.spec_from_file_location(name, path / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def load_example(name: str):
+    """Import examples/<name>.py as a module."""
+    return load_module("examples", name)
+
+
+def load_benchmark(name: str):
+    """Import benchmarks/<name>.py as a module."""
+    return load_module("benchmarks", name)
 
 
 def bsdf_scene(bsdf: dict, dtype=torch.float32):

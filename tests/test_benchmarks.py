@@ -1,24 +1,10 @@
 """The benchmarks run in their smoke settings (ours only, no Mitsuba needed)."""
 import csv
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-from conftest import ROOT, SHARED
-
-
-def load_benchmark(name: str):
-    """Import benchmarks/<name>.py as a module (its folder on sys.path for mitsuba_ref)."""
-    folder = ROOT / "benchmarks"
-    if str(folder) not in sys.path:
-        sys.path.insert(0, str(folder))
-    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import SHARED, load_benchmark
 
 
 @pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")

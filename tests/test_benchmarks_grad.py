@@ -1,22 +1,10 @@
 """The gradient benchmarks (benchmarks/bench_grad_error.py, benchmarks/bench_tutorial.py) run
 in their --quick --no-mitsuba settings and write CSV rows with finite values."""
 import csv
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_benchmark(name: str):
-    folder = ROOT / "benchmarks"
-    if str(folder) not in sys.path:
-        sys.path.insert(0, str(folder))
-    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_benchmark
 
 
 def read_csv(path: Path) -> list:

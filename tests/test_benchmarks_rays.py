@@ -1,16 +1,13 @@
 """Smoke tests of benchmarks/bench_rays.py: the C++ ray benchmark on a 12-triangle cube (ours
 alone, and against Embree 3 when its headers are installed) and the threads/memory parts at
 tiny sizes. The numbers are not checked, only that each part runs and agrees with itself."""
-import importlib.util
 import shutil
 
 import pytest
 
-from conftest import ROOT
+from conftest import load_benchmark
 
-spec = importlib.util.spec_from_file_location("bench_rays", ROOT / "benchmarks" / "bench_rays.py")
-bench_rays = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(bench_rays)
+bench_rays = load_benchmark("bench_rays")
 
 needs_gxx = pytest.mark.skipif(shutil.which("g++") is None, reason="g++ not found")
 
