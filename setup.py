@@ -1,7 +1,8 @@
 """Build torch_rbpt and its C++ extension torch_rbpt._C.
 
 Install with `pip install --no-build-isolation -e .` after torch (see the Makefile).
-Set DEBUG=1 for an unoptimised build with debug symbols.
+Set DEBUG=1 for an unoptimised build with debug symbols, SANITIZE=1 for one instrumented with
+AddressSanitizer and UndefinedBehaviorSanitizer (`SANITIZE=1 make test` preloads their runtime).
 """
 import glob
 import os
@@ -10,8 +11,18 @@ from setuptools import setup
 from torch.utils.cpp_extension import BuildExtension, CppExtension
 
 debug = os.environ.get("DEBUG", "0") == "1"
+sanitize = os.environ.get("SANITIZE", "0") == "1"
 cxx_flags = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare"]
-cxx_flags += ["-O0", "-g"] if debug else ["-O3", "-DNDEBUG"]
+link_flags = ["-fopenmp"]
+if sanitize:
+    # Assertions stay on: the sanitized build is the one that looks for bugs.
+    sanitizers = ["-fsanitize=address,undefined", "-fno-sanitize-recover=undefined"]
+    cxx_flags += sanitizers + ["-fno-omit-frame-pointer", "-g", "-O1"]
+    link_flags += sanitizers
+elif debug:
+    cxx_flags += ["-O0", "-g"]
+else:
+    cxx_flags += ["-O3", "-DNDEBUG"]
 
 setup(
     name="torch_rbpt",
@@ -25,7 +36,7 @@ setup(
             "torch_rbpt._C",
             sorted(glob.glob("csrc/*.cpp")),
             extra_compile_args={"cxx": cxx_flags},
-            extra_link_args=["-fopenmp"],
+            extra_link_args=link_flags,
         )
     ],
     cmdclass={"build_ext": BuildExtension},
