@@ -23,7 +23,7 @@ endif
 # One stamp per build mode; building one mode removes the other's stamp, so switching rebuilds.
 STAMP = .installed-$(MODE)
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install demo test test-slow bench soak clean
 
 # Install torch (local CPU wheel, pinned so pip never resolves a CUDA build), the other
 # dependencies, and build the extension in place. Re-runs when a C++ source changes.
@@ -60,6 +60,10 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_render.py
 	$(PYTHON) benchmarks/bench_gradients.py
+
+# 1000 iterations of the fit_material loop, resident memory sampled: does it stay flat?
+soak: $(STAMP)
+	$(PYTHON) benchmarks/bench_soak.py
 
 clean:
 	rm -rf build *.egg-info torch_rbpt/*.so .installed .installed-* out
