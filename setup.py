@@ -1,9 +1,10 @@
 """Build torch_rbpt and its C++ extension torch_rbpt._C.
 
 Install with `pip install --no-build-isolation -e .` after torch (see the Makefile).
-Set DEBUG=1 for an unoptimised build with debug symbols. The optimised build targets the
-machine it is built on (-march=native; floating-point contraction stays off, so results do
-not change with the instruction set); PORTABLE=1 builds for baseline x86-64 instead.
+Set DEBUG=1 for an unoptimised build with debug symbols, SANITIZE=1 for one instrumented with
+AddressSanitizer and UndefinedBehaviorSanitizer (`SANITIZE=1 make test` preloads their runtime).
+The optimised build targets the machine it is built on (-march=native; floating-point
+contraction stays off, so results keep their rounding); PORTABLE=1 builds for baseline x86-64.
 """
 import glob
 import os
@@ -12,11 +13,19 @@ from setuptools import setup
 from torch.utils.cpp_extension import BuildExtension, CppExtension
 
 debug = os.environ.get("DEBUG", "0") == "1"
+sanitize = os.environ.get("SANITIZE", "0") == "1"
 cxx_flags = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare"]
 portable = os.environ.get("PORTABLE", "0") == "1"
-cxx_flags += ["-O0", "-g"] if debug else ["-O3", "-DNDEBUG", "-ffp-contract=off"]
-if not debug and not portable:
-    cxx_flags.append("-march=native")
+link_flags = ["-fopenmp"]
+if sanitize:
+    # Assertions stay on: the sanitized build is the one that looks for bugs.
+    sanitizers = ["-fsanitize=address,undefined", "-fno-sanitize-recover=undefined"]
+    cxx_flags += sanitizers + ["-fno-omit-frame-pointer", "-g", "-O1"]
+    link_flags += sanitizers
+elif debug:
+    cxx_flags += ["-O0", "-g"]
+else:
+    cxx_flags += ["-O3", "-DNDEBUG", "-ffp-contract=off"] + ([] if portable else ["-march=native"])
 
 setup(
     name="torch_rbpt",
@@ -30,7 +39,7 @@ setup(
             "torch_rbpt._C",
             sorted(glob.glob("csrc/*.cpp")),
             extra_compile_args={"cxx": cxx_flags},
-            extra_link_args=["-fopenmp"],
+            extra_link_args=link_flags,
         )
     ],
     cmdclass={"build_ext": BuildExtension},

@@ -1,7 +1,9 @@
 """Autodiff number types (csrc/autodiff.h: reverse-mode Var, csrc/dual.h: forward-mode Dual).
 
 The checks live in the standalone C++ program tests/cpp/test_autodiff.cpp (the headers need
-neither torch nor the extension); this compiles it warning-free with -Wall and runs it.
+neither torch nor the extension); this compiles it warning-free with -Wall and runs it. Under
+SANITIZE=1 (`SANITIZE=1 make test`) it is built with AddressSanitizer and UBSan, with leak
+detection on: unlike Python, this program should free everything it allocates.
 """
 import os
 import re
@@ -27,12 +29,19 @@ def test01_cpp_autodiff_suite(tmp_path):
     if cxx is None:
         pytest.skip("no C++ compiler found ($CXX, g++, c++ or clang++) to build test_autodiff.cpp")
     exe = tmp_path / "test_autodiff"
-    cmd = [cxx, "-std=c++17", "-O2", "-Wall", "-I", str(ROOT / "csrc"), str(SOURCE), "-o", str(exe)]
-    build = subprocess.run(cmd, capture_output=True, text=True)
+    sanitize = os.environ.get("SANITIZE", "0") == "1"
+    flags = ["-fsanitize=address,undefined", "-fno-sanitize-recover=undefined",
+             "-fno-omit-frame-pointer", "-g", "-O1"] if sanitize else ["-O2"]
+    cmd = [cxx, "-std=c++17", *flags, "-Wall", "-I", str(ROOT / "csrc"), str(SOURCE), "-o", str(exe)]
+    # The compiler is not instrumented: keep the preloaded sanitizer runtime away from it.
+    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+    build = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert build.returncode == 0, f"compilation failed: {' '.join(cmd)}\n{build.stderr}"
     assert "warning:" not in build.stderr, f"compiler warnings:\n{build.stderr}"
 
-    run = subprocess.run([str(exe)], capture_output=True, text=True, timeout=600)
+    if sanitize:
+        env["ASAN_OPTIONS"] = env.get("ASAN_OPTIONS", "") + ":detect_leaks=1"
+    run = subprocess.run([str(exe)], capture_output=True, text=True, timeout=600, env=env)
     output = run.stdout + run.stderr
     assert run.returncode == 0, f"test_autodiff exited with status {run.returncode}:\n{output}"
     summary = re.search(r"^(\d+) passed, (\d+) failed$", run.stdout, re.MULTILINE)
