@@ -20,6 +20,8 @@ struct Filter {
 
     /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias).
     float eval(float x) const;
+    /// eval() at the n offsets x0, x0 + 1, ..., x0 + n - 1 (a row of splat weights).
+    void eval_row(float x0, int n, float *w) const;
     /// The largest border() the film handles (radius 16.5 pixels).
     static constexpr int MaxBorder = 16;
     /// How many pixels a sample's splat reaches on each side of the pixel it lies in.
@@ -66,10 +68,9 @@ struct Camera {
             wx[0] = wy[0] = 1.f;
             return;
         }
-        for (int k = -b; k <= b; ++k) {
-            wx[k + b] = filter.eval(float(px + k) + 0.5f - pos.x);
-            wy[k + b] = filter.eval(float(py + k) + 0.5f - pos.y);
-        }
+        // Pixel px + k has its centre at px + k + 0.5; the offsets grow by 1 along the row.
+        filter.eval_row(float(px - b) + 0.5f - pos.x, 2 * b + 1, wx);
+        filter.eval_row(float(py - b) + 0.5f - pos.y, 2 * b + 1, wy);
     }
 };
 
