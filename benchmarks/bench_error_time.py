@@ -46,7 +46,6 @@ import csv
 import datetime
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -58,6 +57,7 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402
+from machine import cpu_model  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 from torch_rbpt.render import render_with_stats  # noqa: E402
@@ -138,14 +138,6 @@ def time_at_error(curve: list[tuple[float, float]], err: float) -> tuple[float, 
 
 # ----------------------------------------------------------------------------- machine
 
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def machine_info(mitsuba: bool) -> dict:

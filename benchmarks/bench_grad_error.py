@@ -48,7 +48,6 @@ import datetime
 import hashlib
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -61,6 +60,7 @@ import torch_rbpt as tr
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402  (benchmarks/mitsuba_ref.py; imports Mitsuba lazily)
+from machine import cpu_model  # noqa: E402
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 SCENES = HERE / "scenes"
@@ -274,14 +274,6 @@ def sweep(r, ref: dict, args) -> list:
     return rows
 
 
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def plot(results: dict, out: Path) -> None:

@@ -23,11 +23,9 @@ from __future__ import annotations
 
 import argparse
 import csv
-import datetime
 import hashlib
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -37,6 +35,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from machine import machine  # noqa: E402
+
 ROOT = HERE.parent
 CSRC = ROOT / "csrc"
 CACHE = HERE / "cache"
@@ -55,20 +56,8 @@ EMBREE_INSTALL = "apt-get install libembree-dev (Debian/Ubuntu), or set EMBREE_D
 
 # ---- Machine --------------------------------------------------------------------------------
 
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
-def machine() -> str:
-    import torch
-    return (f"{cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}, {platform.system()}, "
-            f"{datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}")
 
 
 def print_table(headers: list[str], rows: list[list], aligns: str | None = None) -> None:

@@ -22,7 +22,7 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_render import machine  # noqa: E402
+from machine import machine  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 

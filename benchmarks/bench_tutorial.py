@@ -34,6 +34,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from machine import cpu_model  # noqa: E402
+
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 KEY = "red.reflectance.value"
 TRUTH = (0.570068, 0.0430135, 0.0443706)
@@ -138,14 +141,6 @@ def measure(renderer: str, cfg: dict, tmp: Path, env: dict) -> dict:
                 error=err, final_loss=d["losses"][-1], **d["info"])
 
 
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown"
 
 
 def main(argv=None) -> list:
