@@ -276,7 +276,7 @@ def sweep(r, ref: dict, args) -> list:
 
 
 
-def plot(results: dict, out: Path) -> None:
+def plot(results: dict, out: Path, header: dict) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -297,16 +297,19 @@ def plot(results: dict, out: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
 
+    machine = (f"{header['cpu']}, {header['cores']} cores, {header['torch_threads']} threads, "
+               f"Mitsuba {header['mitsuba']}, {header['date']}")
     for name, rows in results.items():
-        fig, ax = plt.subplots(figsize=(5, 4))
+        fig, ax = plt.subplots(figsize=(5, 4.4))
         draw(ax, name, rows)
+        ax.set_title(f"{name}\n{machine}", fontsize=7)
         fig.tight_layout()
         fig.savefig(out / f"grad_error_{name}.png", dpi=100)
         plt.close(fig)
     fig, axes = plt.subplots(1, len(results), figsize=(4.5 * len(results), 4), squeeze=False)
     for ax, (name, rows) in zip(axes[0], results.items()):
         draw(ax, name, rows)
-    fig.suptitle("gradient error vs time (labels: spp = spp_grad)")
+    fig.suptitle(f"gradient error vs time (labels: spp = spp_grad); {machine}")
     fig.tight_layout()
     fig.savefig(out / "grad_error.png", dpi=100)
     plt.close(fig)
@@ -428,7 +431,7 @@ def main(argv=None) -> dict:
         w = csv.DictWriter(f, fieldnames=list(csv_rows[0]))
         w.writeheader()
         w.writerows(csv_rows)
-    plot(results, out)
+    plot(results, out, header)
     print(f"\nwrote grad_error.csv, grad_error.png, grad_error_<kind>.png to {out}")
     return {"rows": csv_rows, "agreement": agreement}
 
