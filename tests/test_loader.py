@@ -339,3 +339,20 @@ def test27_filenames_must_be_strings_the_file_system_accepts():
         tr.load_dict(_dict_box(mesh={"type": "obj", "filename": {"type": "rgb", "value": 1}}))
     with pytest.raises(tr.SceneError, match=r"<dict>: obj: cannot access file 'xxxx.*File name too long"):
         tr.load_dict(_dict_box(mesh={"type": "obj", "filename": "x" * 5000}))
+
+
+def test28_duplicate_ids_name_file_and_line(tmp_path):
+    # Found by fuzz_xml: the error named the parameter key but not where it came from.
+    path = tmp_path / "dup.xml"
+    path.write_text('<scene version="3.0.0">\n  <bsdf type="diffuse" id="part"/>\n'
+                    '  <bsdf type="diffuse" id="part"/>\n</scene>\n')
+    with pytest.raises(tr.SceneError, match=r"dup\.xml:3: two parameters share the key 'part\.reflectance\.value'"):
+        tr.load_file(path)
+
+
+def test29_non_finite_values_are_refused_at_load():
+    # Found by fuzz_dict: -inf loaded, and only the render refused it.
+    scene = {"type": "scene", "s": {"type": "sphere", "bsdf": {
+        "type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, float("-inf"), 0.0]}}}}
+    with pytest.raises(tr.SceneError, match=r"<dict>: 's\.bsdf\.reflectance\.value' has a non-finite value"):
+        tr.load_dict(scene)

@@ -146,6 +146,7 @@ class _Builder:
 
     def check(self, node, category: str, nested: tuple = ()):
         """Validate a plugin's type and property names."""
+        self.current = node  # the plugin being built, for errors raised while adding its parameters
         t = node["type"]
         if CATEGORY.get(t) != category:
             supported = sorted(k for k, v in CATEGORY.items() if v == category)
@@ -183,8 +184,12 @@ class _Builder:
 
     def add_param(self, key: str, value) -> int:
         t = torch.as_tensor(np.asarray(value, dtype=np.float64)).to(self.dtype).contiguous()
+        node = getattr(self, "current", None)
         if key in self.params:
-            raise SceneError(f"two parameters share the key '{key}': give the objects distinct ids")
+            self.fail(node, f"two parameters share the key '{key}': give the objects distinct ids")
+        if not bool(torch.isfinite(t).all()):
+            self.fail(node, f"'{key}' has a non-finite value ({t.flatten().tolist()[:3]}{'...' if t.numel() > 3 else ''}): "
+                            f"parameters must be finite")
         self.params[key] = t
         return self.native.add_param(key, t.numel())
 
