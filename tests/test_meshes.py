@@ -638,3 +638,15 @@ def test_transformed_positions_are_bit_exact_with_mitsuba():
                                            2.994769334793091]
     assert world.positions[1].tolist() == [0.9433619976043701, 2.036284923553467,
                                            2.9927895069122314]
+
+
+def test_ply_face_indices_declared_as_a_scalar(tmp_path):
+    # Found by fuzz_ply: 'property int vertex_indices' (not a list) raised a TypeError.
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+              "property float y\nproperty float z\nelement face 1\nproperty int vertex_indices\n"
+              "end_header\n").encode()
+    body = np.array([0, 0, 0, 1, 0, 0, 0, 1, 0], np.float32).tobytes() + np.array([3], np.int32).tobytes()
+    path = tmp_path / "scalar_faces.ply"
+    path.write_bytes(header + body)
+    with pytest.raises(MeshError, match=r"scalar_faces\.ply: property 'vertex_indices' of element 'face' is a scalar"):
+        load_ply(path)

@@ -774,6 +774,9 @@ def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
     lists = face[name]
     if lists.dtype != object and lists.ndim == 2:  # memory-mapped triangles
         tris = np.asarray(lists, dtype=np.int64)
+    elif lists.dtype != object:
+        raise MeshError(f"{path}: property '{name}' of element 'face' is a scalar, expected a "
+                        f"list of vertex indices")
     else:
         counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
         small = np.flatnonzero(counts < 3)
