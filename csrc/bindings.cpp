@@ -422,6 +422,8 @@ int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
              bool flip_normals) {
     if (bsdf < 0 || bsdf >= int(scene.bsdfs.size())) fail("mesh BSDF index out of range");
     positions = float_array(positions, 3, "positions");
+    if (!torch::isfinite(positions).all().item<bool>())
+        fail("mesh vertex positions must be finite in float32 (a transform or coordinate overflows?)");
     if (faces.dim() != 2 || faces.size(1) != 3)
         fail("faces must have shape [M, 3], got " + std::string(c10::str(faces.sizes())));
     faces = faces.to(torch::kCPU, torch::kInt64).contiguous();
@@ -469,7 +471,9 @@ int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
 int add_sphere(Scene &scene, const std::vector<float> &center, float radius,
                const std::vector<std::vector<float>> &frame, int bsdf, bool flip_normals) {
     if (bsdf < 0 || bsdf >= int(scene.bsdfs.size())) fail("sphere BSDF index out of range");
-    if (!(radius > 0.f)) fail("sphere radius must be positive");
+    if (!(radius > 0.f) || !std::isfinite(radius)) fail("sphere radius must be positive and finite");
+    if (center.size() == 3 && !(std::isfinite(center[0]) && std::isfinite(center[1]) && std::isfinite(center[2])))
+        fail("sphere center must be finite (float32)");
     if (frame.size() != 3) fail("sphere frame must be 3 axes");
     Shape shape;
     shape.kind = ShapeKind::Sphere;

@@ -356,3 +356,14 @@ def test29_non_finite_values_are_refused_at_load():
         "type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, float("-inf"), 0.0]}}}}
     with pytest.raises(tr.SceneError, match=r"<dict>: 's\.bsdf\.reflectance\.value' has a non-finite value"):
         tr.load_dict(scene)
+
+
+def test30_overflowing_transform_is_refused_not_a_crash(tmp_path):
+    # Found by fuzz_xml: a translation beyond float32 made the vertices infinite and the BVH
+    # build crashed the interpreter.
+    path = tmp_path / "huge.xml"
+    path.write_text('<scene version="3.0.0">\n  <shape type="cube">\n    <transform name="to_world">\n'
+                    '      <translate x="-2e124"/>\n    </transform>\n  </shape>\n</scene>\n')
+    with pytest.warns(RuntimeWarning):
+        with pytest.raises(tr.SceneError, match=r"huge\.xml:2: cube: mesh vertex positions must be finite"):
+            tr.load_file(path)
