@@ -119,10 +119,10 @@ public:
     Film(const Camera &camera, RowRange rows)
         : camera_(camera), rows_(rows), sums_(size_t(rows.end - rows.begin) * camera.crop_width) {}
 
-    /// Splat a sample taken in pixel (px, py) at `pos` (film coordinates); with L null, only
-    /// its weights (for the backward pass's normalisation).
-    template <typename S>
-    void splat(int px, int py, Vec2 pos, const S *L) {
+    /// Call f(i, w) for each pixel i (row-major over the film's rows) that a sample taken in
+    /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
+    template <typename F>
+    void for_each_reached(int px, int py, Vec2 pos, F f) const {
         float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
         camera_.splat_weights(pos, px, py, wx, wy);
         int b = camera_.filter.border();
@@ -132,12 +132,19 @@ public:
             for (int i = -b; i <= b; ++i) {
                 int x = px - camera_.crop_x + i;
                 if (x < 0 || x >= camera_.crop_width || wx[i + b] == 0.f) continue;
-                PixelSum &sum = sums_[size_t(y - rows_.begin) * camera_.crop_width + x];
-                double w = double(wx[i + b]) * double(wy[j + b]);
-                sum.weight += w;
-                if (L) add_weighted(sum, w, *L);
+                f(size_t(y - rows_.begin) * camera_.crop_width + x, double(wx[i + b]) * double(wy[j + b]));
             }
         }
+    }
+
+    /// Splat a sample taken in pixel (px, py) at `pos` (film coordinates); with L null, only
+    /// its weights (for the backward pass's normalisation).
+    template <typename S>
+    void splat(int px, int py, Vec2 pos, const S *L) {
+        for_each_reached(px, py, pos, [&](size_t i, double w) {
+            sums_[i].weight += w;
+            if (L) add_weighted(sums_[i], w, *L);
+        });
     }
 
     /// Pixel i (row-major over the requested rows).
@@ -229,20 +236,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     std::vector<RGB<double>> scaled(n_pixels);  // adjoint_p / W_p
     for (size_t i = 0; i < n_pixels; ++i)
         for (int c = 0; c < 3; ++c) scaled[i][c] = safe_div(double(adjoint[3 * i + c]), weights[i].weight);
-    int b = camera.filter.border();
     auto gather = [&](int px, int py, Vec2 pos) {
-        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
-        camera.splat_weights(pos, px, py, wx, wy);
         RGB<double> dL;
-        for (int j = -b; j <= b; ++j) {
-            int y = py - camera.crop_y + j;
-            if (y < 0 || y >= camera.crop_height || wy[j + b] == 0.f) continue;
-            for (int i = -b; i <= b; ++i) {
-                int x = px - camera.crop_x + i;
-                if (x < 0 || x >= camera.crop_width || wx[i + b] == 0.f) continue;
-                dL += scaled[size_t(y) * camera.crop_width + x] * (double(wx[i + b]) * wy[j + b]);
-            }
-        }
+        weights.for_each_reached(px, py, pos, [&](size_t i, double w) { dL += scaled[i] * w; });
         return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
     };
 
