@@ -372,7 +372,7 @@ def test30_overflowing_transform_is_refused_not_a_crash(tmp_path):
             tr.load_file(path)
 
 
-# -- Mitsuba 3's own scene files: versions, $name, top-level objects (MITSUBA_FACTS.md, q) --
+# -- Mitsuba 3's own scene files: versions, $name, top-level objects (MITSUBA_FACTS.md, n) --
 
 def _versioned(tmp_path, version, body, name="v.xml"):
     path = tmp_path / name
