@@ -459,3 +459,13 @@ def test34_a_referenced_area_light_lights_the_scene(tmp_path):
     a = tr.render(tr.load_file(_write(tmp_path, scene_xml(True), "a.xml")), spp=4)
     b = tr.render(tr.load_file(_write(tmp_path, scene_xml(False), "b.xml")), spp=4)
     assert torch.equal(a, b) and float(a.mean()) > 0.01
+
+
+def test35_nested_objects_with_an_id_can_be_referenced(tmp_path):
+    # Mitsuba 3.9.1: a BSDF declared inside shape `a` with id "inner" is usable by shape `b`;
+    # its key is named through `a`, where it is first reached.
+    path = _write(tmp_path, '<shape type="sphere" id="a"><bsdf type="diffuse" id="inner">'
+                            '<rgb name="reflectance" value="0.1, 0.2, 0.3"/></bsdf></shape>\n'
+                            '<shape type="sphere" id="b"><ref id="inner"/></shape>')
+    scene = tr.load_file(path)
+    assert [k for k in scene.params if k.endswith(".value")] == ["a.bsdf.reflectance.value"]

@@ -122,7 +122,7 @@ class _Builder:
         self.native = _C.Scene()
         self.params: dict[str, torch.Tensor] = {}
         self.fixed: dict[str, tuple] = {}  # key -> (tensor, why it cannot be differentiated)
-        self.objects = {}  # id -> top-level plugin dict
+        self.objects = {}  # id -> plugin dict (top-level ones, then nested ones with an id)
         self.built_bsdfs: dict[int, int] = {}  # id(node) -> native BSDF index
         self.built_textures: dict[int, int] = {}
         self.built_emitters: dict[int, int] = {}  # id(area emitter node) -> radiance parameter
@@ -130,6 +130,16 @@ class _Builder:
         for key, value in scene.items():
             if _is_plugin(value) and value["type"] != "ref":
                 self.objects[value.get("__id__", key)] = value
+        # As in Mitsuba, a nested object with an id can be referenced from elsewhere too.
+        self._collect_nested_ids(scene)
+
+    def _collect_nested_ids(self, node: dict) -> None:
+        for name, value in node.items():
+            if str(name).startswith("__") or not _is_plugin(value) or value["type"] == "ref":
+                continue
+            if node.get("type") != "scene" and "__id__" in value:
+                self.objects.setdefault(value["__id__"], value)
+            self._collect_nested_ids(value)
 
     # -- helpers ------------------------------------------------------------------------------
 
