@@ -469,3 +469,10 @@ def test35_nested_objects_with_an_id_can_be_referenced(tmp_path):
                             '<shape type="sphere" id="b"><ref id="inner"/></shape>')
     scene = tr.load_file(path)
     assert [k for k in scene.params if k.endswith(".value")] == ["a.bsdf.reflectance.value"]
+
+
+def test36_textured_emission_is_a_clear_error():
+    for emitter, name in (({"type": "point"}, "intensity"), ({"type": "constant"}, "radiance")):
+        scene = {"type": "scene", "e": {**emitter, name: {"type": "checkerboard"}}}
+        with pytest.raises(tr.SceneError, match=rf"<dict>: {emitter['type']}: .*textured .* not supported"):
+            tr.load_dict(scene)

@@ -563,12 +563,14 @@ class _Builder:
             position = self.vector(node, "position", [0, 0, 0])
             if "to_world" in node:
                 position = self.matrix(node) @ np.append(position, 1.0)
-            param, _ = self.texture(node, "intensity", f"{key}.intensity", 1.0)
+            param, texture = self.texture(node, "intensity", f"{key}.intensity", 1.0)
+            if texture >= 0:
+                self.fail(node, "point: a textured intensity is not supported (use rgb, spectrum or a number)")
             self.add_native(node, "emitter", "point", param, -1, [float(x) for x in position[:3]])
         else:
             param, bitmap = self.texture(node, "radiance", f"{key}.radiance", 1.0)
             if bitmap >= 0:
-                self.fail(node, "constant: textured radiance is not supported (use rgb or a number)")
+                self.fail(node, "constant: textured radiance is not supported (use rgb, spectrum or a number)")
             self.add_native(node, "emitter", "constant", param, -1, [])
 
     # -- sensor and integrator ---------------------------------------------------------------
