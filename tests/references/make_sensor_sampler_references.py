@@ -42,11 +42,69 @@ REFERENCES = {
 }
 
 
+# Sensors whose sample_ray outputs rays.json records (film 64 x 48 unless given), for
+# (position sample, aperture sample) pairs in [0, 1]^2 (position relative to the crop window).
+RAY_SENSORS = {
+    "orthographic_default": dict(type="orthographic"),
+    "orthographic_scaled": dict(type="orthographic", to_world=("scale", [2, 3, 1])),
+    "orthographic_lookat": dict(type="orthographic", near_clip=0.5, far_clip=7.0,
+                                to_world=("lookat_scale", [1, 1, 1], [1, 2, 1], [0, 0, 1], [10, 10, 1])),
+    "orthographic_crop": dict(type="orthographic", crop=(16, 8, 32, 16)),
+    "thinlens_default": dict(type="thinlens", aperture_radius=0.1),
+    "thinlens_focus": dict(type="thinlens", aperture_radius=0.1, focus_distance=2.0, fov=40.0),
+    "thinlens_lookat": dict(type="thinlens", aperture_radius=0.3, focus_distance=3.0, fov=30.0,
+                            fov_axis="y", near_clip=0.1, far_clip=50.0,
+                            to_world=("lookat_scale", [0, 1, 5], [0, 0, 0], [0, 1, 0], [1, 1, 1])),
+}
+RAY_SAMPLES = [((0.5, 0.5), (0.5, 0.5)), ((0.0, 0.0), (0.5, 0.5)), ((1.0, 1.0), (0.5, 0.5)),
+               ((1.0, 0.0), (0.5, 0.5)), ((0.5, 0.5), (1.0, 0.5)), ((0.0, 0.0), (1.0, 0.5)),
+               ((0.5, 0.5), (0.9, 0.7)), ((0.2, 0.7), (0.1, 0.3))]
+
+
+def sensor_rays():
+    """sample_ray(time 0, wavelength 0.5, position, aperture) of each RAY_SENSORS entry, in
+    the scalar_rgb variant; written to sensors_samplers/rays.json."""
+    import mitsuba as mi
+    mi.set_variant("scalar_rgb")
+    T = mi.ScalarTransform4f
+    out = {}
+    for name, desc in RAY_SENSORS.items():
+        d = {k: v for k, v in desc.items() if k not in ("to_world", "crop")}
+        film = {"type": "hdrfilm", "width": 64, "height": 48}
+        if "crop" in desc:
+            x, y, w, h = desc["crop"]
+            film.update(crop_offset_x=x, crop_offset_y=y, crop_width=w, crop_height=h)
+        d["film"] = film
+        if "to_world" in desc:
+            kind, *args = desc["to_world"]
+            d["to_world"] = (T().scale(args[0]) if kind == "scale" else
+                             T().look_at(origin=args[0], target=args[1], up=args[2]) @ T().scale(args[3]))
+        sensor = mi.load_dict(d)
+        rays = []
+        for pos, ap in RAY_SAMPLES:
+            ray, weight = sensor.sample_ray(0.0, 0.5, mi.Point2f(*pos), mi.Point2f(*ap))
+            rays.append(dict(position=pos, aperture=ap, o=list(map(float, ray.o)),
+                             d=list(map(float, ray.d)), maxt=float(ray.maxt),
+                             weight=list(map(float, weight))))
+        params = {k: (float(v) if not hasattr(v, "matrix") else None)
+                  for k, v in mi.traverse(sensor).items() if not k.startswith("film.")}
+        out[name] = dict(sensor={k: v for k, v in desc.items()}, rays=rays,
+                         traverse=sorted(mi.traverse(sensor).keys()),
+                         traverse_values={k: v for k, v in params.items() if v is not None})
+    with open(os.path.join(FOLDER, "rays.json"), "w") as f:
+        json.dump(dict(description="Mitsuba 3.9.1 (scalar_rgb) sensor.sample_ray outputs; made by "
+                                   "tests/references/make_sensor_sampler_references.py", sensors=out),
+                  f, indent=1)
+    print("wrote rays.json (%d sensors)" % len(out))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--spp", type=int, default=32768, help="total spp per reference")
-    ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--only", nargs="*", default=None, help="reference names, or 'rays' for rays.json only")
     args = ap.parse_args()
+    if args.only == ["rays"]:
+        return sensor_rays()
     if not mitsuba_ref.available():
         sys.exit("Mitsuba 3 is not available; cannot make references.")
     print("Mitsuba %s, variant %s" % (mitsuba_ref.version(), mitsuba_ref.variant()))
@@ -86,6 +144,8 @@ def main():
                references=meta)
     with open(jpath, "w") as f:
         json.dump(doc, f, indent=2)
+    if not args.only:
+        sensor_rays()
 
 
 if __name__ == "__main__":
