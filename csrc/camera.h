@@ -59,47 +59,27 @@ struct Camera {
     /// square, mapped to the lens disk). Rays start on the near clip plane (tmin) and end on
     /// the far one (tmax), as Mitsuba's.
     Ray ray_for(Vec2 pos, Vec2 u) const {
-        // Film position -> (1, 1) top left ... (-1, -1) bottom right: camera-local +x is left.
+        if (type == CameraType::Orthographic) return orthographic_ray(pos);
+        if (type == CameraType::ThinLens) return thin_lens_ray(pos, u);
+        // Perspective: through the pinhole at the origin.
         float sx = 1.f - 2.f * (pos.x / float(film_width));
         float sy = 1.f - 2.f * (pos.y / float(film_height));
+        Vec3 d_local = normalize(Vec3{sx * tan_half_x, sy * tan_half_y, 1.f});
         Ray ray;
-        switch (type) {
-            case CameraType::Orthographic: {
-                // The region [-1, 1] x [-1/aspect, 1/aspect] of the local z = near plane,
-                // mapped by to_world (its scale gives the extent), looking along local +z.
-                float aspect = float(film_width) / float(film_height);
-                ray.o = origin + frame_x * sx + frame_y * (sy / aspect) + frame_z * near_clip;
-                ray.d = normalize(frame_z);
-                ray.tmin = 0.f;
-                ray.tmax = far_clip - near_clip;
-                return ray;
-            }
-            case CameraType::ThinLens: {
-                // Through a point on the aperture disk towards the point of the focal plane
-                // (local z = focus_distance) that the pinhole ray would reach.
-                Vec2 a = warp::square_to_uniform_disk_concentric(u);
-                Vec3 aperture{aperture_radius * a.x, aperture_radius * a.y, 0.f};
-                Vec3 focus{sx * tan_half_x * focus_distance, sy * tan_half_y * focus_distance,
-                           focus_distance};
-                Vec3 d_local = normalize(focus - aperture);
-                ray.o = origin + axis_x * aperture.x + axis_y * aperture.y;
-                ray.d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
-                float inv_z = 1.f / d_local.z;
-                ray.tmin = near_clip * inv_z;
-                ray.tmax = far_clip * inv_z;
-                return ray;
-            }
-            default: {
-                Vec3 d_local = normalize(Vec3{sx * tan_half_x, sy * tan_half_y, 1.f});
-                ray.o = origin;
-                ray.d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
-                float inv_z = 1.f / d_local.z;
-                ray.tmin = near_clip * inv_z;
-                ray.tmax = far_clip * inv_z;
-                return ray;
-            }
-        }
+        ray.o = origin;
+        ray.d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
+        float inv_z = 1.f / d_local.z;
+        ray.tmin = near_clip * inv_z;
+        ray.tmax = far_clip * inv_z;
+        return ray;
     }
+
+    /// The region [-1, 1] x [-1/aspect, 1/aspect] of the local z = near_clip plane, mapped by
+    /// to_world (whose scale gives the extent), looking along local +z.
+    Ray orthographic_ray(Vec2 pos) const;
+    /// Through the point `u` picks on the aperture disk towards the point of the focal plane
+    /// (local z = focus_distance) that the pinhole ray reaches.
+    Ray thin_lens_ray(Vec2 pos, Vec2 u) const;
 
     /// A sample position uniformly distributed in pixel (px, py) of the full film.
     Vec2 sample_position(int px, int py, Sampler &sampler) const {

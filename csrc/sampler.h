@@ -211,8 +211,9 @@ private:
     /// (cell + offset) / n, kept below 1 (float rounding could reach it).
     static float scaled(float x, float inv_n) { return std::min(x * inv_n, OneMinusEpsilon); }
 
-    float stratified_1d();
-    Vec2 stratified_2d();
+    // Out of line: the independent sampler's hot path stays a compare and a PCG step.
+    [[gnu::noinline]] float stratified_1d();
+    [[gnu::noinline]] Vec2 stratified_2d();
     float orthogonal_1d();
 
     uint64_t state_, inc_;
