@@ -420,7 +420,6 @@ py::tuple bsdf_query(const Scene &scene, const std::vector<torch::Tensor> &param
                : bsdf_query_typed<float>(scene, params, index, wi, wo, u1, u2, uv);
 }
 
-/// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
 // ---- Sensor and sampler queries, for tests --------------------------------------------
 
 /// The numbers the sensor's sampler gives pixel `pixel` (row-major index in the full film):
@@ -476,6 +475,7 @@ py::tuple camera_rays(const py::dict &camera, torch::Tensor positions, torch::Te
     return py::make_tuple(o, d, t0, t1);
 }
 
+/// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
 py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
     origins = float_array(origins, 3, "origins");
     directions = float_array(directions, 3, "directions");

@@ -211,9 +211,10 @@ private:
     /// (cell + offset) / n, kept below 1 (float rounding could reach it).
     static float scaled(float x, float inv_n) { return std::min(x * inv_n, OneMinusEpsilon); }
 
-    // Out of line: the independent sampler's hot path stays a compare and a PCG step.
-    [[gnu::noinline]] float stratified_1d();
-    [[gnu::noinline]] Vec2 stratified_2d();
+    // Out of line (noinline at their definitions): the independent sampler's hot path stays
+    // a compare and a PCG step.
+    float stratified_1d();
+    Vec2 stratified_2d();
     float orthogonal_1d();
 
     uint64_t state_, inc_;
@@ -223,7 +224,7 @@ private:
 };
 
 /// One dimension stratified into sample_count intervals, one sample each.
-inline float Sampler::stratified_1d() {
+[[gnu::noinline]] inline float Sampler::stratified_1d() {
     const SamplerDesc &d = *desc_;
     if (d.type == SamplerType::Orthogonal) return orthogonal_1d();
     uint32_t seed = dim_seed(dim_++);
@@ -246,7 +247,7 @@ inline float Sampler::stratified_1d() {
 /// Two dimensions: stratified (a res x res grid, one sample per cell), correlated
 /// multi-jittered (a res_x x res_y grid whose samples are also stratified in each axis),
 /// orthogonal array (two 1D draws of an OA of strength 2), or a scrambled (0, 2)-sequence.
-inline Vec2 Sampler::stratified_2d() {
+[[gnu::noinline]] inline Vec2 Sampler::stratified_2d() {
     const SamplerDesc &d = *desc_;
     if (d.type == SamplerType::Orthogonal) {
         float x = orthogonal_1d();
