@@ -169,6 +169,20 @@ public:
         uint64_t key = mix64(mix64(seed ^ 0x6A09E667F3BCC909ull) ^ pixel);
         seq_ = uint32_t(key ^ (key >> 32));
         index_ = uint32_t(sample);
+        if (type_ == SamplerType::Orthogonal) {
+            // The sample's row of the orthogonal array, the same in every dimension.
+            uint32_t i = permute_kensler(index_, desc.sample_count, seq_);
+            aux_[0] = i / desc.res_x;
+            aux_[1] = i - aux_[0] * desc.res_x;
+        } else if (type_ == SamplerType::LowDiscrepancy) {
+            // The pixel's scrambles (shared by all dimensions, as Mitsuba's): 1D, and 2D x, y.
+            uint32_t v1 = 0x48bc48ebu;
+            aux_[0] = seq_;
+            tea(aux_[0], v1);
+            aux_[1] = seq_;
+            aux_[2] = 0x98bc51abu;
+            tea(aux_[1], aux_[2]);
+        }
     }
 
     uint32_t next_u32() {
@@ -221,6 +235,7 @@ private:
     SamplerType type_ = SamplerType::Independent;
     const SamplerDesc *desc_ = nullptr;
     uint32_t seq_ = 0, index_ = 0, dim_ = 0;
+    uint32_t aux_[3];  ///< orthogonal: the array row (a0, a1); ldsampler: the scrambles
 };
 
 /// One dimension stratified into sample_count intervals, one sample each.
@@ -235,11 +250,8 @@ private:
         case SamplerType::Multijitter:
             return scaled(float(permute_kensler(index_, n, seed * 0x45fbe943u)) + jitter(),
                           1.f / float(n));
-        case SamplerType::LowDiscrepancy: {
-            uint32_t v0 = seq_, v1 = 0x48bc48ebu;
-            tea(v0, v1);
-            return radical_inverse_2(permute_pow2(index_, n, seed), v0);
-        }
+        case SamplerType::LowDiscrepancy:
+            return radical_inverse_2(permute_pow2(index_, n, seed), aux_[0]);
         default: return uniform();
     }
 }
@@ -276,9 +288,7 @@ private:
         }
         case SamplerType::LowDiscrepancy: {
             uint32_t i = permute_pow2(index_, n, seed);
-            uint32_t sx = seq_, sy = 0x98bc51abu;
-            tea(sx, sy);
-            return {radical_inverse_2(i, sx), sobol_2(i, sy)};
+            return {radical_inverse_2(i, aux_[1]), sobol_2(i, aux_[2])};
         }
         default: {
             float x = uniform();
@@ -295,8 +305,7 @@ private:
 inline float Sampler::orthogonal_1d() {
     const SamplerDesc &d = *desc_;
     uint32_t j = dim_++, p = d.res_x;
-    uint32_t i = permute_kensler(index_, d.sample_count, seq_);
-    uint32_t a0 = i / p, a1 = i - a0 * p;
+    uint32_t a0 = aux_[0], a1 = aux_[1];
     uint32_t a_ij, a_ik;
     if (j == 0) {
         a_ij = a0;
