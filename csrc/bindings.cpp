@@ -55,15 +55,44 @@ torch::Tensor float_array(const torch::Tensor &t, int64_t cols, const char *what
     return t.to(torch::kCPU, torch::kFloat32).contiguous();
 }
 
+/// The sensor's sampler: entries "sampler" (Mitsuba's plugin name, default independent)
+/// and "sampler_jitter" (default true). Its sample count is set per render (whole_image).
+SamplerDesc make_sampler(const py::dict &d) {
+    SamplerDesc s;
+    auto type = d.contains("sampler") ? get<std::string>(d, "sampler") : std::string("independent");
+    if (type == "independent") s.type = SamplerType::Independent;
+    else if (type == "stratified") s.type = SamplerType::Stratified;
+    else if (type == "multijitter") s.type = SamplerType::Multijitter;
+    else if (type == "orthogonal") s.type = SamplerType::Orthogonal;
+    else if (type == "ldsampler") s.type = SamplerType::LowDiscrepancy;
+    else fail("unknown sampler '" + type + "' (supported: independent, stratified, multijitter, "
+              "orthogonal, ldsampler)");
+    if (d.contains("sampler_jitter")) s.jitter = get<bool>(d, "sampler_jitter");
+    return s;
+}
+
 Camera make_camera(const py::dict &d) {
     Camera cam;
     auto m = get<std::vector<std::vector<float>>>(d, "to_world");
     if (m.size() < 3 || m[0].size() != 4) fail("camera to_world must be a 4x4 matrix");
     auto column = [&](int j) { return Vec3{m[0][j], m[1][j], m[2][j]}; };
-    cam.axis_x = normalize(column(0));
-    cam.axis_y = normalize(column(1));
-    cam.axis_z = normalize(column(2));
+    cam.frame_x = column(0);
+    cam.frame_y = column(1);
+    cam.frame_z = column(2);
+    cam.axis_x = normalize(cam.frame_x);
+    cam.axis_y = normalize(cam.frame_y);
+    cam.axis_z = normalize(cam.frame_z);
     cam.origin = column(3);
+    auto type = d.contains("type") ? get<std::string>(d, "type") : std::string("perspective");
+    if (type == "perspective") cam.type = CameraType::Perspective;
+    else if (type == "orthographic") cam.type = CameraType::Orthographic;
+    else if (type == "thinlens") cam.type = CameraType::ThinLens;
+    else fail("unknown sensor '" + type + "' (supported: perspective, orthographic, thinlens)");
+    if (cam.type == CameraType::ThinLens) {
+        cam.aperture_radius = get<float>(d, "aperture_radius");
+        cam.focus_distance = get<float>(d, "focus_distance");
+    }
+    cam.sampler = make_sampler(d);
     float fov_x = get<float>(d, "fov_x");
     cam.film_width = get<int>(d, "width");
     cam.film_height = get<int>(d, "height");
@@ -199,10 +228,15 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     return out;
 }
 
-RenderRequest whole_image(const Camera &cam, int spp, uint64_t seed) {
+/// A request for the whole image at `spp` samples per pixel, rounded as the sensor's sampler
+/// rounds its sample count (Mitsuba's set_sample_count): `cam.sampler` learns the count.
+RenderRequest whole_image(Camera &cam, int spp, uint64_t seed) {
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
+    if (cam.sampler.type != SamplerType::Independent && spp > (1 << 24))
+        fail("the stratified samplers take at most 2^24 samples per pixel, got " + std::to_string(spp));
+    cam.sampler.set_sample_count(uint32_t(spp));
     RenderRequest req;
-    req.spp = spp;
+    req.spp = int(cam.sampler.sample_count);
     req.seed = seed;
     req.row_end = cam.crop_height;
     return req;
@@ -389,6 +423,61 @@ py::tuple bsdf_query(const Scene &scene, const std::vector<torch::Tensor> &param
     bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
     return dbl ? bsdf_query_typed<double>(scene, params, index, wi, wo, u1, u2, uv)
                : bsdf_query_typed<float>(scene, params, index, wi, wo, u1, u2, uv);
+}
+
+// ---- Sensor and sampler queries, for tests --------------------------------------------
+
+/// The numbers the sensor's sampler gives pixel `pixel` (row-major index in the full film):
+/// for each of its samples, one draw per entry of `dims` (1: next_1d, 2: next_2d), the
+/// values concatenated. Returns a (sample_count, sum(dims)) float32 tensor.
+torch::Tensor sampler_points(const py::dict &camera, int spp, uint64_t seed, uint64_t pixel,
+                             const std::vector<int> &dims) {
+    Camera cam = make_camera(camera);
+    RenderRequest req = whole_image(cam, spp, seed);
+    int width = 0;
+    for (int d : dims) {
+        if (d != 1 && d != 2) fail("dims entries must be 1 or 2");
+        width += d;
+    }
+    torch::Tensor out = torch::empty({req.spp, width});
+    float *o = out.data_ptr<float>();
+    for (int s = 0; s < req.spp; ++s) {
+        Sampler sampler(cam.sampler, seed, pixel, uint64_t(s));
+        for (int d : dims) {
+            if (d == 1) {
+                *o++ = sampler.next_1d();
+            } else {
+                Vec2 u = sampler.next_2d();
+                *o++ = u.x;
+                *o++ = u.y;
+            }
+        }
+    }
+    return out;
+}
+
+/// The sensor's rays for film positions (N, 2) in pixels and aperture samples (N, 2):
+/// (origins (N, 3), directions (N, 3), tmin (N,), tmax (N,)).
+py::tuple camera_rays(const py::dict &camera, torch::Tensor positions, torch::Tensor apertures) {
+    Camera cam = make_camera(camera);
+    positions = float_array(positions, 2, "positions");
+    apertures = float_array(apertures, 2, "apertures");
+    int64_t n = positions.size(0);
+    if (apertures.size(0) != n) fail("positions and apertures must have the same length");
+    torch::Tensor o = torch::empty({n, 3}), d = torch::empty({n, 3}), t0 = torch::empty({n}),
+                  t1 = torch::empty({n});
+    const float *p = positions.data_ptr<float>(), *a = apertures.data_ptr<float>();
+    float *po = o.data_ptr<float>(), *pd = d.data_ptr<float>();
+    for (int64_t i = 0; i < n; ++i) {
+        Ray r = cam.ray_for({p[2 * i], p[2 * i + 1]}, {a[2 * i], a[2 * i + 1]});
+        for (int k = 0; k < 3; ++k) {
+            po[3 * i + k] = r.o[k];
+            pd[3 * i + k] = r.d[k];
+        }
+        t0.data_ptr<float>()[i] = r.tmin;
+        t1.data_ptr<float>()[i] = r.tmax;
+    }
+    return py::make_tuple(o, d, t0, t1);
 }
 
 /// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
@@ -646,4 +735,7 @@ PYBIND11_MODULE(_C, m) {
           py::arg("seed"));
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
+    m.def("sampler_points", &sampler_points, py::arg("camera"), py::arg("spp"), py::arg("seed"),
+          py::arg("pixel"), py::arg("dims"));
+    m.def("camera_rays", &camera_rays, py::arg("camera"), py::arg("positions"), py::arg("apertures"));
 }

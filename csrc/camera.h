@@ -1,5 +1,6 @@
-// The perspective sensor and its film geometry: pixel -> ray, and the reconstruction filter
-// whose weights splat each sample into the pixels around it (as Mitsuba's film does).
+// The sensors (`perspective`, `orthographic`, `thinlens`) and their film geometry: pixel -> ray,
+// and the reconstruction filter whose weights splat each sample into the pixels around it (as
+// Mitsuba's film does). Every sensor's ray weight is 1, as in Mitsuba's RGB variants.
 #pragma once
 
 #include <array>
@@ -7,6 +8,7 @@
 
 #include "math.h"
 #include "sampler.h"
+#include "warp.h"
 
 namespace rbpt {
 
@@ -35,29 +37,54 @@ struct Filter {
     }
 };
 
+enum class CameraType { Perspective, Orthographic, ThinLens };
+
 struct Camera {
-    /// Columns of the camera-to-world matrix: local x (left), y (up), z (forward), origin.
+    CameraType type = CameraType::Perspective;
+    /// Columns of the camera-to-world matrix, normalised: local x (left), y (up), z (forward),
+    /// and the origin.
     Vec3 axis_x, axis_y, axis_z, origin;
+    /// The same columns unnormalised (orthographic: their lengths scale the viewed region).
+    Vec3 frame_x, frame_y, frame_z;
     float tan_half_x = 1.f, tan_half_y = 1.f;  ///< half extent of the image plane at z = 1
     float near_clip = 1e-2f, far_clip = 1e4f;
+    float aperture_radius = 0.f, focus_distance = 1e4f;  ///< thinlens
     int film_width = 1, film_height = 1;
     int crop_x = 0, crop_y = 0, crop_width = 1, crop_height = 1;
     Filter filter;
+    SamplerDesc sampler;  ///< the sensor's sampler, as in Mitsuba
 
-    /// Generate the ray through film position (fx, fy) in pixels (0, 0 = top left corner).
-    Ray ray_at(float fx, float fy, float *tmin) const {
-        float sx = fx / float(film_width), sy = fy / float(film_height);
-        Vec3 d_local = normalize(
-            Vec3{(1.f - 2.f * sx) * tan_half_x, (1.f - 2.f * sy) * tan_half_y, 1.f});
-        Vec3 d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
-        float inv_z = 1.f / d_local.z;
+    /// The ray through film position `pos` in pixels (0, 0 = top left corner of the full
+    /// film), drawing the aperture sample (thinlens only) from `sampler`.
+    Ray sample_ray(Vec2 pos, Sampler &sampler) const {
+        return ray_for(pos, type == CameraType::ThinLens ? sampler.next_2d() : Vec2{0.5f, 0.5f});
+    }
+
+    /// The ray through film position `pos` and aperture sample `u` (a point of the unit
+    /// square, mapped to the lens disk). Rays start on the near clip plane (tmin) and end on
+    /// the far one (tmax), as Mitsuba's.
+    Ray ray_for(Vec2 pos, Vec2 u) const {
+        if (type == CameraType::Orthographic) return orthographic_ray(pos);
+        if (type == CameraType::ThinLens) return thin_lens_ray(pos, u);
+        // Perspective: through the pinhole at the origin.
+        float sx = 1.f - 2.f * (pos.x / float(film_width));
+        float sy = 1.f - 2.f * (pos.y / float(film_height));
+        Vec3 d_local = normalize(Vec3{sx * tan_half_x, sy * tan_half_y, 1.f});
         Ray ray;
         ray.o = origin;
-        ray.d = d;
-        *tmin = near_clip * inv_z;
+        ray.d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
+        float inv_z = 1.f / d_local.z;
+        ray.tmin = near_clip * inv_z;
         ray.tmax = far_clip * inv_z;
         return ray;
     }
+
+    /// The region [-1, 1] x [-1/aspect, 1/aspect] of the local z = near_clip plane, mapped by
+    /// to_world (whose scale gives the extent), looking along local +z.
+    Ray orthographic_ray(Vec2 pos) const;
+    /// Through the point `u` picks on the aperture disk towards the point of the focal plane
+    /// (local z = focus_distance) that the pinhole ray reaches.
+    Ray thin_lens_ray(Vec2 pos, Vec2 u) const;
 
     /// A sample position uniformly distributed in pixel (px, py) of the full film.
     Vec2 sample_position(int px, int py, Sampler &sampler) const {

@@ -79,10 +79,7 @@ void for_each_pixel_of_tile(const Camera &camera, const Tiles &tiles, RowRange r
 template <typename S>
 S trace(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
         Vec2 pos, Sampler &sampler) {
-    float tmin;
-    Ray ray = camera.ray_at(pos.x, pos.y, &tmin);
-    ray.tmin = tmin;
-    return li(ctx, cfg, ray, sampler);
+    return li(ctx, cfg, camera.sample_ray(pos, sampler), sampler);
 }
 
 /// Whether a sample's value (and tangent, for dual numbers) is finite.
@@ -169,7 +166,7 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
         for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
                                [&](int px, int py, uint64_t key) {
             for (int s = 0; s < req.spp; ++s) {
-                Sampler sampler(req.seed, key, uint64_t(s));
+                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
                 Vec2 pos = camera.sample_position(px, py, sampler);
                 S L = trace(ctx, camera, cfg, pos, sampler);
                 // Drop a non-finite sample rather than poisoning its pixels, and count it.
@@ -229,7 +226,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     for_each_tile_phased(tiles, all, pool, [&](int tx, int ty) {
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
             for (int s = 0; s < req.spp; ++s) {
-                Sampler sampler(req.seed, key, uint64_t(s));
+                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
                 weights.splat<RGB<T>>(px, py, camera.sample_position(px, py, sampler), nullptr);
             }
         });
@@ -276,7 +273,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t key) {
                 for (int s = 0; s < req.spp; ++s) {
-                    Sampler sampler(req.seed, key, uint64_t(s));
+                    Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
                     Vec2 pos = camera.sample_position(px, py, sampler);
                     RGB<T> dL = gather(px, py, pos);
                     if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) continue;

@@ -1,7 +1,13 @@
-// Counter-based random numbers: every (seed, pixel, sample) triple has its own PCG32 stream, so
-// an image is bitwise identical whatever the thread count or the order pixels are visited in.
+// The samplers: Mitsuba's `independent`, `stratified`, `multijitter`, `orthogonal` and
+// `ldsampler`. All are counter-based: a sample's numbers depend only on (seed, pixel, sample),
+// so an image is bitwise identical whatever the thread count or the order pixels are visited
+// in. The stratified kinds build their pattern over the pixel's `sample_count` samples from
+// per-pixel permutations (hashed from (seed, pixel, dimension)) and draw their jitter from the
+// sample's own PCG32 stream; every single sample is uniform on [0, 1)^n, so estimates stay
+// unbiased while the samples of a pixel are stratified.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 
 #include "math.h"
@@ -16,9 +22,134 @@ inline uint64_t mix64(uint64_t x) {
     return x ^ (x >> 31);
 }
 
-/// PCG32 (O'Neill 2014) seeded from (seed, pixel, sample); the `independent` sampler.
+/// Tiny Encryption Algorithm (Zafar et al. 2010), as Mitsuba's sample_tea_32.
+inline void tea(uint32_t &v0, uint32_t &v1, int rounds = 4) {
+    uint32_t sum = 0;
+    for (int i = 0; i < rounds; ++i) {
+        sum += 0x9e3779b9;
+        v0 += ((v1 << 4) + 0xa341316c) ^ (v1 + sum) ^ ((v1 >> 5) + 0xc8013ea4);
+        v1 += ((v0 << 4) + 0xad90777d) ^ (v0 + sum) ^ ((v0 >> 5) + 0x7e95761e);
+    }
+}
+
+/// Element `index` of a pseudo-random permutation of {0, ..., n - 1} chosen by `seed`
+/// (Kensler 2013, "Correlated Multi-Jittered Sampling": a hash bijective on the next power of
+/// two, cycle-walked until it lands below n).
+inline uint32_t permute_kensler(uint32_t index, uint32_t n, uint32_t seed) {
+    if (n <= 1) return 0;
+    uint32_t w = n - 1;
+    w |= w >> 1;
+    w |= w >> 2;
+    w |= w >> 4;
+    w |= w >> 8;
+    w |= w >> 16;
+    do {
+        index ^= seed;
+        index *= 0xe170893d;
+        index ^= seed >> 16;
+        index ^= (index & w) >> 4;
+        index ^= seed >> 8;
+        index *= 0x0929eb3f;
+        index ^= seed >> 23;
+        index ^= (index & w) >> 1;
+        index *= 1 | seed >> 27;
+        index *= 0x6935fa69;
+        index ^= (index & w) >> 11;
+        index *= 0x74dcb303;
+        index ^= (index & w) >> 2;
+        index *= 0x9e501cc3;
+        index ^= (index & w) >> 2;
+        index *= 0xc860a3df;
+        index &= w;
+        index ^= index >> 5;
+    } while (index >= n);
+    return (index + seed) % n;
+}
+
+/// Element `index` of a pseudo-random permutation of {0, ..., n - 1}, n a power of two: a
+/// shuffle network of TEA-decided swaps, one level per bit (Mitsuba's `permute`).
+inline uint32_t permute_pow2(uint32_t index, uint32_t n, uint32_t seed) {
+    for (uint32_t bit = 1; bit < n; bit <<= 1) {
+        uint32_t v0 = index | bit, v1 = seed;
+        tea(v0, v1, 2);
+        if (v0 & bit) index ^= bit;
+    }
+    return index;
+}
+
+/// Van der Corput radical inverse in base 2 of `index`, its digits xor-scrambled.
+inline float radical_inverse_2(uint32_t index, uint32_t scramble) {
+    index = (index << 16) | (index >> 16);
+    index = ((index & 0x00ff00ffu) << 8) | ((index & 0xff00ff00u) >> 8);
+    index = ((index & 0x0f0f0f0fu) << 4) | ((index & 0xf0f0f0f0u) >> 4);
+    index = ((index & 0x33333333u) << 2) | ((index & 0xccccccccu) >> 2);
+    index = ((index & 0x55555555u) << 1) | ((index & 0xaaaaaaaau) >> 1);
+    return float((index ^ scramble) >> 8) * 0x1p-24f;
+}
+
+/// Second dimension of the Sobol sequence at `index`, xor-scrambled: with radical_inverse_2 it
+/// forms a (0, 2)-sequence in base 2.
+inline float sobol_2(uint32_t index, uint32_t scramble) {
+    for (uint32_t v = 1u << 31; index != 0; index >>= 1, v ^= v >> 1)
+        if (index & 1) scramble ^= v;
+    return float(scramble >> 8) * 0x1p-24f;
+}
+
+enum class SamplerType { Independent, Stratified, Multijitter, Orthogonal, LowDiscrepancy };
+
+/// A sampler plugin's settings: its kind, `jitter`, and the sample count rounded as
+/// Mitsuba 3 rounds it, with the stratification grid that count gives.
+struct SamplerDesc {
+    SamplerType type = SamplerType::Independent;
+    bool jitter = true;
+    uint32_t sample_count = 4;
+    uint32_t res_x = 1, res_y = 1;  ///< grid of next_2d (stratified, multijitter, orthogonal)
+
+    /// Set the number of samples per pixel as Mitsuba's set_sample_count does: stratified
+    /// rounds up to a square, multijitter to rows x columns with rows = floor(sqrt(spp)),
+    /// orthogonal to the square of a prime (at least 4), ldsampler to a power of 4 (at
+    /// least 4); independent keeps it.
+    void set_sample_count(uint32_t spp) {
+        auto is_prime = [](uint32_t x) {
+            for (uint32_t i = 2; i * i <= x; ++i)
+                if (x % i == 0) return false;
+            return true;
+        };
+        res_x = res_y = 1;
+        switch (type) {
+            case SamplerType::Independent: sample_count = spp; return;
+            case SamplerType::Stratified:
+                while (res_x * res_x < spp) ++res_x;
+                res_y = res_x;
+                break;
+            case SamplerType::Multijitter:
+                res_y = uint32_t(std::sqrt(double(spp)));
+                while ((res_y + 1) * (res_y + 1) <= spp) ++res_y;  // exact floor(sqrt)
+                while (res_y * res_y > spp) --res_y;
+                res_x = (spp + res_y - 1) / res_y;
+                break;
+            case SamplerType::Orthogonal:
+                res_x = 2;
+                while (res_x * res_x < spp || !is_prime(res_x)) ++res_x;
+                res_y = res_x;
+                break;
+            case SamplerType::LowDiscrepancy:
+                res_x = 2;
+                while (res_x * res_x < spp) res_x *= 2;
+                res_y = res_x;
+                break;
+        }
+        sample_count = res_x * res_y;
+    }
+};
+
+/// The sample generator of one (seed, pixel, sample) triple. Its own PCG32 stream (O'Neill
+/// 2014) is the `independent` sampler and the jitter of the stratified kinds; the stratified
+/// kinds (dispatched by a switch, no virtual call) advance a dimension counter with every
+/// next_1d / next_2d, as Mitsuba's samplers do.
 class Sampler {
 public:
+    /// The independent sampler.
     Sampler(uint64_t seed, uint64_t pixel, uint64_t sample) {
         uint64_t key = mix64(mix64(seed) ^ pixel);
         inc_ = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u;
@@ -26,6 +157,32 @@ public:
         next_u32();
         state_ += mix64(key + sample);
         next_u32();
+    }
+
+    /// Sample `sample` (< desc.sample_count) of pixel `pixel` with the sampler `desc`.
+    Sampler(const SamplerDesc &desc, uint64_t seed, uint64_t pixel, uint64_t sample)
+        : Sampler(seed, pixel, sample) {
+        type_ = desc.type;
+        desc_ = &desc;
+        if (type_ == SamplerType::Independent) return;
+        // One permutation seed per pixel (Mitsuba's per-sequence seed); dimensions offset it.
+        uint64_t key = mix64(mix64(seed ^ 0x6A09E667F3BCC909ull) ^ pixel);
+        seq_ = uint32_t(key ^ (key >> 32));
+        index_ = uint32_t(sample);
+        if (type_ == SamplerType::Orthogonal) {
+            // The sample's row of the orthogonal array, the same in every dimension.
+            uint32_t i = permute_kensler(index_, desc.sample_count, seq_);
+            aux_[0] = i / desc.res_x;
+            aux_[1] = i - aux_[0] * desc.res_x;
+        } else if (type_ == SamplerType::LowDiscrepancy) {
+            // The pixel's scrambles (shared by all dimensions, as Mitsuba's): 1D, and 2D x, y.
+            uint32_t v1 = 0x48bc48ebu;
+            aux_[0] = seq_;
+            tea(aux_[0], v1);
+            aux_[1] = seq_;
+            aux_[2] = 0x98bc51abu;
+            tea(aux_[1], aux_[2]);
+        }
     }
 
     uint32_t next_u32() {
@@ -37,14 +194,134 @@ public:
     }
 
     /// Uniform float in [0, 1): 24 random mantissa bits.
-    float next_1d() { return float(next_u32() >> 8) * 0x1p-24f; }
+    float uniform() { return float(next_u32() >> 8) * 0x1p-24f; }
+
+    float next_1d() {
+        if (type_ == SamplerType::Independent) return uniform();
+        return stratified_1d();
+    }
     Vec2 next_2d() {
-        float x = next_1d();
-        return {x, next_1d()};
+        if (type_ == SamplerType::Independent) {
+            float x = uniform();
+            return {x, uniform()};
+        }
+        return stratified_2d();
     }
 
 private:
+    static constexpr float OneMinusEpsilon = 0x1.fffffep-1f;
+
+    float jitter() { return desc_->jitter ? uniform() : 0.5f; }
+
+    /// The permutation seed of dimension `dim` of this pixel. Unlike Mitsuba's
+    /// `seed + dim`, hashed: Kensler's and the TEA shuffle's permutations of neighbouring
+    /// seeds are correlated, which couples dimensions (e.g. the pixel position with the
+    /// light sample); see MITSUBA_FACTS.md, section m.
+    uint32_t dim_seed(uint32_t dim) const {
+        uint64_t h = mix64((uint64_t(seq_) << 32) | dim);
+        return uint32_t(h ^ (h >> 32));
+    }
+
+    /// (cell + offset) / n, kept below 1 (float rounding could reach it).
+    static float scaled(float x, float inv_n) { return std::min(x * inv_n, OneMinusEpsilon); }
+
+    // Out of line (noinline at their definitions): the independent sampler's hot path stays
+    // a compare and a PCG step.
+    float stratified_1d();
+    Vec2 stratified_2d();
+    float orthogonal_1d();
+
     uint64_t state_, inc_;
+    SamplerType type_ = SamplerType::Independent;
+    const SamplerDesc *desc_ = nullptr;
+    uint32_t seq_ = 0, index_ = 0, dim_ = 0;
+    uint32_t aux_[3];  ///< orthogonal: the array row (a0, a1); ldsampler: the scrambles
 };
+
+/// One dimension stratified into sample_count intervals, one sample each.
+[[gnu::noinline]] inline float Sampler::stratified_1d() {
+    const SamplerDesc &d = *desc_;
+    if (d.type == SamplerType::Orthogonal) return orthogonal_1d();
+    uint32_t seed = dim_seed(dim_++);
+    uint32_t n = d.sample_count;
+    switch (d.type) {
+        case SamplerType::Stratified:
+            return scaled(float(permute_kensler(index_, n, seed)) + jitter(), 1.f / float(n));
+        case SamplerType::Multijitter:
+            return scaled(float(permute_kensler(index_, n, seed * 0x45fbe943u)) + jitter(),
+                          1.f / float(n));
+        case SamplerType::LowDiscrepancy:
+            return radical_inverse_2(permute_pow2(index_, n, seed), aux_[0]);
+        default: return uniform();
+    }
+}
+
+/// Two dimensions: stratified (a res x res grid, one sample per cell), correlated
+/// multi-jittered (a res_x x res_y grid whose samples are also stratified in each axis),
+/// orthogonal array (two 1D draws of an OA of strength 2), or a scrambled (0, 2)-sequence.
+[[gnu::noinline]] inline Vec2 Sampler::stratified_2d() {
+    const SamplerDesc &d = *desc_;
+    if (d.type == SamplerType::Orthogonal) {
+        float x = orthogonal_1d();
+        return {x, orthogonal_1d()};
+    }
+    uint32_t seed = dim_seed(dim_++);
+    uint32_t n = d.sample_count;
+    switch (d.type) {
+        case SamplerType::Stratified: {
+            uint32_t p = permute_kensler(index_, n, seed);
+            uint32_t y = p / d.res_x, x = p - y * d.res_x;
+            float jx = jitter(), jy = jitter();
+            float inv = 1.f / float(d.res_x);
+            return {scaled(float(x) + jx, inv), scaled(float(y) + jy, inv)};
+        }
+        case SamplerType::Multijitter: {
+            // Kensler's correlated multi-jittering: cell (x, y) of a res_x x res_y grid, and
+            // within it the sub-cell given by permuted y (along x) and permuted x (along y).
+            uint32_t s = permute_kensler(index_, n, seed * 0x51633e2du);
+            uint32_t y = s / d.res_x, x = s - y * d.res_x;
+            uint32_t sx = permute_kensler(x, d.res_x, seed * 0x68bc21ebu);
+            uint32_t sy = permute_kensler(y, d.res_y, seed * 0x02e5be93u);
+            float jx = jitter(), jy = jitter();
+            return {scaled(float(x * d.res_y + sy) + jx, 1.f / float(n)),
+                    scaled(float(y * d.res_x + sx) + jy, 1.f / float(n))};
+        }
+        case SamplerType::LowDiscrepancy: {
+            uint32_t i = permute_pow2(index_, n, seed);
+            return {radical_inverse_2(i, aux_[1]), sobol_2(i, aux_[2])};
+        }
+        default: {
+            float x = uniform();
+            return {x, uniform()};
+        }
+    }
+}
+
+/// Dimension dim_ of an orthogonal array of strength 2 (Bose's construction, as in Jarosz et
+/// al. 2019 and Mitsuba's `orthogonal`): the pixel's samples, mapped to (a0, a1) in a p x p
+/// grid (p prime), take column a0 + (j - 1) a1 mod p in dimension j, so every pair of
+/// dimensions is stratified in p x p cells, and the paired column picks the sub-stratum
+/// (multi-jittered, so each dimension is also stratified into p^2 intervals).
+inline float Sampler::orthogonal_1d() {
+    const SamplerDesc &d = *desc_;
+    uint32_t j = dim_++, p = d.res_x;
+    uint32_t a0 = aux_[0], a1 = aux_[1];
+    uint32_t a_ij, a_ik;
+    if (j == 0) {
+        a_ij = a0;
+        a_ik = a1;
+    } else if (j == 1) {
+        a_ij = a1;
+        a_ik = a0;
+    } else {
+        uint32_t k = (j % 2) ? j - 1 : j + 1;
+        a_ij = (a0 + (j - 1) * a1) % p;
+        a_ik = (a0 + (k - 1) * a1) % p;
+    }
+    uint32_t seed = dim_seed(j);
+    uint32_t stratum = permute_kensler(a_ij, p, seed * 0x51633e2du);
+    uint32_t sub = permute_kensler(a_ik, p, seed * 0x68bc21ebu);
+    return scaled(float(stratum * p + sub) + jitter(), 1.f / float(d.sample_count));
+}
 
 }  // namespace rbpt

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numbers
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,9 @@ CATEGORY = {
     "bitmap": "texture", "checkerboard": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
     "gaussian": "rfilter", "mitchell": "rfilter", "catmullrom": "rfilter", "lanczos": "rfilter",
-    "independent": "sampler",
+    "orthographic": "sensor", "thinlens": "sensor",
+    "independent": "sampler", "stratified": "sampler", "multijitter": "sampler",
+    "orthogonal": "sampler", "ldsampler": "sampler",
     "path": "integrator", "prb": "integrator", "direct": "integrator",
 }
 
@@ -56,7 +59,14 @@ PROPERTIES = {
                 "pixel_format", "component_format", "file_format", "sample_border"},
     "box": set(), "tent": {"radius"}, "gaussian": {"stddev"}, "mitchell": {"B", "C"},
     "catmullrom": set(), "lanczos": {"lobes"},
+    "orthographic": {"to_world", "near_clip", "far_clip"},
+    "thinlens": {"fov", "fov_axis", "focal_length", "near_clip", "far_clip", "focus_distance",
+                 "aperture_radius", "to_world"},
     "independent": {"sample_count", "seed"},
+    "stratified": {"sample_count", "seed", "jitter"},
+    "multijitter": {"sample_count", "seed", "jitter"},
+    "orthogonal": {"sample_count", "seed", "jitter", "strength"},
+    "ldsampler": {"sample_count", "seed"},
     "path": {"max_depth", "rr_depth", "hide_emitters"},
     "prb": {"max_depth", "rr_depth", "hide_emitters"},
     "direct": {"emitter_samples", "bsdf_samples", "shading_samples", "hide_emitters"},
@@ -577,15 +587,40 @@ class _Builder:
 
     def sensor(self, node) -> Sensor:
         self.check(node, "sensor", nested=("film", "sampler"))
-        s = Sensor()
+        t = node["type"]
+        s = Sensor(type=t)
         s.to_world = self.matrix(node)
         if np.linalg.matrix_rank(s.to_world[:3, :3]) < 3:  # the renderer's rays would be NaN
-            self.fail(node, f"perspective: to_world must be invertible, got {s.to_world.tolist()}")
+            self.fail(node, f"{t}: to_world must be invertible, got {s.to_world.tolist()}")
+        s.near_clip = self.number(node, "near_clip", 1e-2)
+        s.far_clip = self.number(node, "far_clip", 1e4)
+        if t != "orthographic":
+            self.field_of_view(node, s)
+        if t == "thinlens":
+            if "aperture_radius" not in node:
+                self.fail(node, "thinlens: missing parameter 'aperture_radius' (Mitsuba has no default)")
+            # Mitsuba replaces a zero radius by its float epsilon (with a warning).
+            s.aperture_radius = self.number(node, "aperture_radius") or 2.0 ** -24
+            s.focus_distance = self.number(node, "focus_distance", s.far_clip)
+            r = s.to_world[:3, :3]  # Mitsuba's has_scale(): rows orthonormal within 1e-3
+            if not np.allclose(r @ r.T, np.eye(3), rtol=0, atol=1e-3):
+                self.fail(node, "thinlens: scale factors in to_world are not allowed (as in Mitsuba), "
+                                f"got axis lengths {np.linalg.norm(r, axis=0).tolist()}")
+        films = self.nested(node, "film")
+        s.film = self.film(films[0][1]) if films else Film()
+        samplers = self.nested(node, "sampler")
+        if samplers:
+            self.sampler(samplers[0][1], s)
+        return s
+
+    def field_of_view(self, node, s: Sensor) -> None:
+        """`fov` + `fov_axis` or `focal_length` (perspective, thinlens), as Mitsuba's parse_fov."""
+        t = node["type"]
         for name in ("principal_point_offset_x", "principal_point_offset_y"):
             if self.number(node, name, 0.0) != 0.0:
-                self.fail(node, f"perspective: '{name}' must be 0 (off-centre projections are not supported)")
+                self.fail(node, f"{t}: '{name}' must be 0 (off-centre projections are not supported)")
         if "fov" in node and "focal_length" in node:
-            self.fail(node, "perspective: give either 'fov' or 'focal_length', not both")
+            self.fail(node, f"{t}: give either 'fov' or 'focal_length', not both")
         if "fov" in node:
             s.fov = self.number(node, "fov")
             s.fov_axis = self.string(node, "fov_axis", "x", ("x", "y", "diagonal", "smaller", "larger"))
@@ -595,23 +630,27 @@ class _Builder:
             try:
                 focal = float(text)
             except ValueError:
-                self.fail(node, f"perspective: cannot parse focal_length '{f}'")
+                self.fail(node, f"{t}: cannot parse focal_length '{f}'")
             # Mitsuba: a 35 mm film (36 x 24 mm) diagonal field of view.
             s.fov = float(np.degrees(2 * np.arctan(np.hypot(36.0, 24.0) / (2 * focal))))
             s.fov_axis = "diagonal"
-        s.near_clip = self.number(node, "near_clip", 1e-2)
-        s.far_clip = self.number(node, "far_clip", 1e4)
-        films = self.nested(node, "film")
-        s.film = self.film(films[0][1]) if films else Film()
-        samplers = self.nested(node, "sampler")
-        if samplers:
-            sampler = samplers[0][1]
-            self.check(sampler, "sampler")
-            s.spp = self.number(sampler, "sample_count", 4, int)
-            s.seed = self.number(sampler, "seed", 0, int)
-            if s.spp <= 0:
-                self.fail(sampler, "independent: sample_count must be positive")
-        return s
+
+    def sampler(self, node, s: Sensor) -> None:
+        """A sampler plugin's settings into sensor `s` (its sample count is rounded at render
+        time as Mitsuba rounds it)."""
+        self.check(node, "sampler")
+        t = node["type"]
+        s.sampler = t
+        s.spp = self.number(node, "sample_count", 4, int)
+        s.seed = self.number(node, "seed", 0, int)
+        s.jitter = self.number(node, "jitter", True, bool)
+        if s.spp <= 0:
+            self.fail(node, f"{t}: sample_count must be positive")
+        if t != "independent" and s.spp > 2 ** 24:
+            self.fail(node, f"{t}: sample_count must be at most 2^24, got {s.spp}")
+        if t == "orthogonal" and self.number(node, "strength", 2, int) != 2:
+            self.fail(node, "orthogonal: only strength 2 is supported (Mitsuba 3.9.1's other "
+                            "strengths do not give stratified patterns)")
 
     def film(self, node) -> Film:
         self.check(node, "film", nested=("rfilter",))
@@ -704,6 +743,12 @@ class _Builder:
                 self.bsdf(value, key)  # registers its parameters even if unused
             elif cat == "texture":
                 self.build_texture(value, key)
+            elif cat == "sampler" and "__id__" not in value:
+                # Mitsuba 3 loads a top-level sampler that nothing can reference and ignores
+                # it: sensors keep their own (by default independent, 4 samples).
+                self.check(value, "sampler")
+                warnings.warn(f"{_where(value)}: a top-level sampler is ignored, as Mitsuba 3 "
+                              f"ignores it; nest it in the sensor to use it", UserWarning, stacklevel=3)
             # A top-level film, rfilter or sampler is used where a sensor (or film) references it.
         if sensor is None:
             sensor = Sensor()

@@ -81,16 +81,27 @@ class Film:
 
 @dataclass
 class Sensor:
-    """`perspective` sensor. `fov` is along `fov_axis`, resolved against the film's aspect
-    ratio at render time (so changing the film size keeps Mitsuba's meaning)."""
+    """`perspective`, `orthographic` or `thinlens` sensor, with its film and sampler.
+
+    `fov` (perspective, thinlens) is along `fov_axis`, resolved against the film's aspect
+    ratio at render time (so changing the film size keeps Mitsuba's meaning). Orthographic:
+    `to_world`'s scale gives the viewed region, [-1, 1] x [-1/aspect, 1/aspect] in local
+    units. Thinlens: `aperture_radius` and `focus_distance` (default: `far_clip`).
+    `sampler` is Mitsuba's sampler plugin name; `spp` its sample_count, rounded at render
+    time as the sampler rounds it (stratified: to a square, ...); `jitter` its jitter flag."""
+    type: str = "perspective"
     to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     fov: float = 46.793003  # Mitsuba's default 50 mm lens: diagonal fov of a 36 x 24 mm film
     fov_axis: str = "diagonal"
     near_clip: float = 1e-2
     far_clip: float = 1e4
+    aperture_radius: float = 0.0
+    focus_distance: float = 1e4
     film: Film = field(default_factory=Film)
+    sampler: str = "independent"
     spp: int = 4
     seed: int = 0
+    jitter: bool = True
 
     def x_fov(self) -> float:
         """Horizontal field of view in degrees, as Mitsuba's parse_fov computes it."""
@@ -117,7 +128,10 @@ class Sensor:
                 "crop": list(f.crop_window()), "filter": "mitchell" if catmullrom else f.filter,
                 "filter_radius": f.filter_radius, "filter_stddev": f.filter_stddev,
                 "filter_b": 0.0 if catmullrom else f.filter_b,
-                "filter_c": 0.5 if catmullrom else f.filter_c, "filter_lobes": f.filter_lobes}
+                "filter_c": 0.5 if catmullrom else f.filter_c, "filter_lobes": f.filter_lobes,
+                "type": self.type, "aperture_radius": self.aperture_radius,
+                "focus_distance": self.focus_distance, "sampler": self.sampler,
+                "sampler_jitter": self.jitter}
 
 
 @dataclass
