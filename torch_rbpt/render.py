@@ -1,24 +1,16 @@
 """Rendering entry points: `render` (differentiable), `render_forward` (forward-mode
-derivative images) and the `_Render` autograd.Function that connects them to torch."""
+derivative images), both calling the custom operators of `ops.py`."""
 from __future__ import annotations
 
 import numbers
 
 import torch
+import torch.autograd.forward_ad as fwAD
 
-from . import _C
+from . import _C, ops
 from .scene import Scene
 
 _SEED_GRAD_MIX = 0x5DEECE66D  # nonzero: a derived seed_grad never equals seed
-
-
-def _plain(x: torch.Tensor) -> torch.Tensor:
-    """The underlying tensor of a torch.func (functorch) wrapper, which has no storage of its
-    own for the C++ core to read; plain tensors pass through."""
-    from torch._C._functorch import get_unwrapped, is_functorch_wrapped_tensor
-    while is_functorch_wrapped_tensor(x):
-        x = get_unwrapped(x)
-    return x
 
 
 def default_seed_grad(seed: int) -> int:
@@ -38,46 +30,46 @@ def _check_spp(name: str, spp) -> int:
     return int(spp)
 
 
-class _Render(torch.autograd.Function):
-    """image = render(params). Forward renders with `seed` and saves only the parameters;
-    backward re-traces `spp_grad` paths with `seed_grad` carrying the image adjoint
-    (radiative backpropagation); jvp renders with dual numbers."""
+def _image_size(scene: Scene) -> tuple[int, int]:
+    _, _, width, height = scene.sensor.film.crop_window()
+    return height, width
+
+
+class _RenderDual(torch.autograd.Function):
+    """render for parameters carrying forward-mode tangents (torch.func.jvp,
+    torch.autograd.forward_ad): the forward is torch_rbpt::render, jvp torch_rbpt::render_jvp
+    on the same seed, backward torch_rbpt::render_bwd as the operator's own autograd."""
+
+    generate_vmap_rule = True  # vmap goes through the operators' own vmap rules
 
     @staticmethod
-    def forward(scene, camera, integrator, spp, seed, spp_grad, seed_grad, *params):
-        values = [p.detach().contiguous() for p in params]
-        image, _ = _C.render_fwd(scene._native, camera, integrator, values, spp, seed, 0, -1)
-        return image
+    def forward(scene, height, width, spp, seed, spp_grad, seed_grad, *params):
+        return ops.render(list(params), scene, height, width, spp, seed, spp_grad, seed_grad)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        scene, camera, integrator, spp, seed, spp_grad, seed_grad, *params = inputs
-        ctx.scene, ctx.camera, ctx.integrator = scene, camera, integrator
-        ctx.spp, ctx.seed, ctx.spp_grad, ctx.seed_grad = spp, seed, spp_grad, seed_grad
+        scene, height, width, spp, seed, spp_grad, seed_grad, *params = inputs
+        ctx.args = scene, height, width, spp, seed, spp_grad, seed_grad
         ctx.save_for_backward(*params)
-        # For jvp: detached views of the values (no copy). Saved tensors come back wrapped
-        # under torch.func transforms, where the C++ core needs plain storage.
-        ctx.values = [p.detach() for p in params]
+        ctx.save_for_forward(*params)
         ctx.set_materialize_grads(False)
 
     @staticmethod
-    def backward(ctx, grad_image):
-        params = ctx.saved_tensors
-        needs = list(ctx.needs_input_grad[7:])
-        if grad_image is None or not any(needs):
-            return (None,) * (7 + len(params))
-        values = [p.detach().contiguous() for p in params]
-        grads = _C.render_bwd(ctx.scene._native, ctx.camera, ctx.integrator, values, needs,
-                              grad_image, ctx.spp_grad, ctx.seed_grad)
-        return (None,) * 7 + tuple(None if g is None else g.view_as(p) for g, p in zip(grads, params))
+    def jvp(ctx, *tangents):
+        scene, height, width, spp, seed, _, _ = ctx.args
+        return ops.render_jvp(list(ctx.saved_tensors), list(tangents[7:]), scene, height, width, spp, seed)
 
     @staticmethod
-    def jvp(ctx, *tangents):
-        t = [None if x is None else _plain(x.detach()).contiguous() for x in tangents[7:]]
-        values = [_plain(p).contiguous() for p in ctx.values]
-        _, derivative = _C.render_jvp(ctx.scene._native, ctx.camera, ctx.integrator, values, t,
-                                      ctx.spp, ctx.seed)
-        return derivative
+    def backward(ctx, grad_image):
+        scene, height, width, _, _, spp_grad, seed_grad = ctx.args
+        needs = list(ctx.needs_input_grad[7:])
+        grads = ops.param_grads(list(ctx.saved_tensors), grad_image, needs, scene, height, width,
+                                spp_grad, seed_grad)
+        return (None,) * 7 + tuple(grads)
+
+
+def _has_tangent(params: list[torch.Tensor]) -> bool:
+    return any(fwAD.unpack_dual(p).tangent is not None for p in params)
 
 
 def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | None = None,
@@ -103,9 +95,13 @@ def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | 
         if torch.is_grad_enabled() and any(p.requires_grad for p in params):
             raise ValueError("rows= renders a band of an image and is not differentiable; "
                              "render the whole image or use torch.no_grad()")
+        scene.check_fixed()
         return render_with_stats(scene, spp, seed, rows)[0]
-    return _Render.apply(scene, scene.sensor.native(), scene.integrator.native(), spp, seed,
-                         spp_grad, seed_grad, *params)
+    height, width = _image_size(scene)
+    args = (scene._handle, height, width, spp, ops.signed_seed(seed), spp_grad, ops.signed_seed(seed_grad))
+    if _has_tangent(params):
+        return _RenderDual.apply(*args, *params)
+    return ops.render(params, *args)
 
 
 def render_with_stats(scene: Scene, spp: int | None = None, seed: int = 0,
@@ -126,8 +122,8 @@ def render_forward(scene: Scene, tangents: dict, spp: int | None = None, seed: i
     dtype. With the same seed it is the exact derivative of `render(scene, spp, seed)`."""
     spp = _check_spp("spp", scene.sensor.spp if spp is None else spp)
     seed = _check_seed("seed", seed)
-    scene.differentiable_inputs()  # checks fixed parameters
+    scene.differentiable_inputs()  # checks fixed parameters (and the operator, edits)
     t = scene.tangent_list(tangents)
-    _, derivative = _C.render_jvp(scene._native, scene.sensor.native(), scene.integrator.native(),
-                                  scene.param_list(), t, spp, seed)
-    return derivative
+    height, width = _image_size(scene)
+    return ops.render_jvp(scene.param_list(), t, scene._handle, height, width, spp,
+                          ops.signed_seed(seed))

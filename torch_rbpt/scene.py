@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from . import _C
+from . import _C, ops
 
 
 class SceneParams(MutableMapping):
@@ -134,6 +134,7 @@ class Scene:
     def __init__(self, native: "_C.Scene", params: dict[str, torch.Tensor], sensor: Sensor,
                  integrator: Integrator, source: str = "<dict>", fixed: dict | None = None):
         self._native = native
+        self._handle = ops.register_scene(self)  # names the scene to the custom operators
         self._keys = list(params)  # order of the C++ parameter registry
         fixed = fixed or {}
         self.params = SceneParams({**params, **{k: v for k, (v, _) in fixed.items()}},
@@ -160,15 +161,20 @@ class Scene:
 
     def differentiable_inputs(self) -> list[torch.Tensor]:
         """The parameter tensors in registry order (what render() differentiates), after
-        checking that no fixed parameter (geometry, IOR) was edited or marked for gradients."""
+        checking that no fixed parameter (geometry, IOR) is marked for gradients."""
         p = self.params
         for k, why in p._fixed.items():
-            t = p._tensors[k]
-            if t.requires_grad:
+            if p._tensors[k].requires_grad:
                 raise ValueError(f"scene parameter '{k}' cannot be differentiated: {why}")
-            if t._version != p._fixed_versions[k]:
-                raise ValueError(f"scene parameter '{k}' was edited, which is not supported: {why}")
         return [p._tensors[k] for k in self._keys]
+
+    def check_fixed(self) -> None:
+        """Check that no fixed parameter was edited in place. The operators call it when they
+        run (a tensor's version is runtime state, which torch.compile cannot guard on)."""
+        p = self.params
+        for k, why in p._fixed.items():
+            if p._tensors[k]._version != p._fixed_versions[k]:
+                raise ValueError(f"scene parameter '{k}' was edited, which is not supported: {why}")
 
     def tangent_list(self, tangents: dict) -> list:
         """Tangents in registry order for render_forward (None where absent), checked."""
