@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import _C, meshes
+from . import meshes
 from .images import read_image
 from .mitsuba_xml import SceneError, read_xml
-from .scene import Film, Integrator, Scene, Sensor
+from .scene import Film, Integrator, NativeScene, Scene, Sensor
 from .transform import Transform, as_matrix
 
 CATEGORY = {
@@ -113,7 +113,7 @@ class _Builder:
         _check_plugin_dicts(scene, "scene")
         self.search = [base_dir] + list(scene.get("__search__", []))
         self.dtype = dtype
-        self.native = _C.Scene()
+        self.native = NativeScene()
         self.params: dict[str, torch.Tensor] = {}
         self.fixed: dict[str, tuple] = {}  # key -> (tensor, why it cannot be differentiated)
         self.objects = {}  # id -> top-level plugin dict
@@ -191,12 +191,12 @@ class _Builder:
             self.fail(node, f"'{key}' has a non-finite value ({t.flatten().tolist()[:3]}{'...' if t.numel() > 3 else ''}): "
                             f"parameters must be finite")
         self.params[key] = t
-        return self.native.add_param(key, t.numel())
+        return self.native.add("param", key, t.numel())
 
     def add_native(self, node, what: str, *args) -> int:
         """`self.native.add_<what>(*args)`; the core's ValueErrors are re-raised naming the plugin."""
         try:
-            return getattr(self.native, f"add_{what}")(*args)
+            return self.native.add(what, *args)
         except ValueError as e:
             self.fail(node, f"{node['type']}: {e}")
 
@@ -609,7 +609,6 @@ class _Builder:
                 raise SceneError(f"{_where(value)}: a {cat} must be nested in a sensor or film")
         if sensor is None:
             sensor = Sensor()
-        self.native.build()
         return Scene(self.native, self.params, sensor, integrator, source, self.fixed)
 
 
