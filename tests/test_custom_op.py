@@ -209,11 +209,62 @@ def test10_vmap_over_a_batch_of_parameter_values_equals_a_loop():
                                    rtol=0, atol=0)
 
 
-def test11_double_backward_is_a_clear_error():
+def test11_second_derivatives_are_a_clear_error():
+    """Double backward, and reverse mode while the parameters carry forward-mode tangents
+    (forward-over-reverse), would need render's second derivatives."""
+    import torch.autograd.forward_ad as fwAD
     scene = _cbox()
     p = scene.params[KEY].requires_grad_()
     image = tr.render(scene, spp=2, seed=1)
     (g,) = torch.autograd.grad(((image - 0.3) ** 2).sum(), [p], create_graph=True)
     with pytest.raises(RuntimeError, match="render's gradients are not differentiable"):
         g.sum().backward()
+    # A linear loss: only the parameters carry the second derivative.
+    (g,) = torch.autograd.grad(tr.render(scene, spp=2, seed=1).sum(), [p], create_graph=True)
+    with pytest.raises(RuntimeError, match="render's gradients are not differentiable"):
+        g.sum().backward()
+    with fwAD.dual_level():
+        scene.params[KEY] = fwAD.make_dual(p, torch.ones(3, dtype=torch.float64))
+        image = tr.render(scene, spp=2, seed=1)
+        with pytest.raises(RuntimeError, match="render's gradients are not differentiable"):
+            torch.autograd.grad(image.sum(), [p])
+    scene.params[KEY] = p
 
+
+def test12_torch_func_grad_and_vmap_of_grad():
+    scene = _cbox()
+    x0 = scene.params[KEY].detach().clone()
+
+    def loss(v):
+        scene.params[KEY] = v
+        return ((tr.render(scene, spp=2, seed=1) - 0.2) ** 2).sum()
+
+    batch = torch.stack([x0, torch.tensor([0.1, 0.9, 0.3], dtype=torch.float64)])
+    per_entry = torch.func.vmap(torch.func.grad(loss))(batch)
+    for i in range(2):
+        v = batch[i].clone().requires_grad_()
+        (expected,) = torch.autograd.grad(loss(v), [v])
+        assert torch.equal(torch.func.grad(loss)(batch[i]), expected)
+        assert torch.equal(per_entry[i], expected)
+    assert not torch.equal(per_entry[0], per_entry[1])
+
+
+def test13_concurrent_backward_passes_through_one_image():
+    """One-hot adjoints from several threads at once (examples/gradient_image.py) give what
+    they give one at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+    scene = _cbox()
+    p = scene.params[KEY].requires_grad_()
+    image = tr.render(scene, spp=2, seed=1)
+
+    def pixel_grad(k):
+        onehot = torch.zeros_like(image)
+        onehot.view(-1, 3)[k, 0] = 1
+        return torch.autograd.grad(image, p, onehot, retain_graph=True)[0]
+
+    pixels = list(range(0, 64, 2))
+    sequential = [pixel_grad(k) for k in pixels]
+    with ThreadPoolExecutor(4) as pool:
+        concurrent = list(pool.map(pixel_grad, pixels))
+    assert all(torch.equal(a, b) for a, b in zip(sequential, concurrent))
+    assert sum(float(g.abs().sum()) > 0 for g in sequential) > 8

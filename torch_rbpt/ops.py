@@ -92,13 +92,13 @@ def _(params, grad_image, needs_grad, scene, height, width, spp, seed):
     return [torch.empty_like(p) for p, n in zip(params, needs_grad) if n]
 
 
-def _no_double_backward(ctx, *grads):
+def double_backward_error(ctx, *grads):
     raise RuntimeError("torch_rbpt: render's gradients are not differentiable (no double "
-                       "backward); differentiate render once, or use render_forward for "
-                       "forward-mode derivatives")
+                       "backward, no forward-mode derivative of a gradient); differentiate "
+                       "render once, by reverse mode or by render_forward")
 
 
-render_bwd.register_autograd(_no_double_backward)
+render_bwd.register_autograd(double_backward_error)
 
 
 # -- render_jvp: forward mode -------------------------------------------------------------------

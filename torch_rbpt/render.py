@@ -5,7 +5,6 @@ from __future__ import annotations
 import numbers
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
 from . import _C, ops
 from .scene import Scene
@@ -35,10 +34,14 @@ def _image_size(scene: Scene) -> tuple[int, int]:
     return height, width
 
 
-class _RenderDual(torch.autograd.Function):
-    """render for parameters carrying forward-mode tangents (torch.func.jvp,
-    torch.autograd.forward_ad): the forward is torch_rbpt::render, jvp torch_rbpt::render_jvp
-    on the same seed, backward torch_rbpt::render_bwd as the operator's own autograd."""
+class _Render(torch.autograd.Function):
+    """Eager render: the forward is torch_rbpt::render, backward torch_rbpt::render_bwd (as the
+    operator's registered autograd), jvp torch_rbpt::render_jvp on the forward's seed.
+
+    torch.compile traces the operator itself instead (a custom jvp breaks its graph). Eager
+    code keeps this Function: it adds forward mode and torch.func.grad, and concurrent
+    backward passes through one image (examples/gradient_image.py) are safe here, where
+    torch 2.13's register_autograd wrapper swaps ctx.needs_input_grad during backward."""
 
     generate_vmap_rule = True  # vmap goes through the operators' own vmap rules
 
@@ -62,14 +65,32 @@ class _RenderDual(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image):
         scene, height, width, _, _, spp_grad, seed_grad = ctx.args
+        params = ctx.saved_tensors
         needs = list(ctx.needs_input_grad[7:])
-        grads = ops.param_grads(list(ctx.saved_tensors), grad_image, needs, scene, height, width,
-                                spp_grad, seed_grad)
-        return (None,) * 7 + tuple(grads)
+        if grad_image is None or not any(needs):
+            return (None,) * (7 + len(params))
+        grads = iter(_RenderBwd.apply((scene, height, width, spp_grad, seed_grad), needs,
+                                      grad_image, *params))
+        return (None,) * 7 + tuple(next(grads) if n else None for n in needs)
 
 
-def _has_tangent(params: list[torch.Tensor]) -> bool:
-    return any(fwAD.unpack_dual(p).tangent is not None for p in params)
+class _RenderBwd(torch.autograd.Function):
+    """torch_rbpt::render_bwd for _Render.backward: differentiating it (double backward, or
+    forward mode through a gradient) is a clear error, also when only the parameters require
+    grad."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(args, needs, grad_image, *params):
+        return tuple(ops.render_bwd(list(params), grad_image, needs, *args))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    backward = staticmethod(ops.double_backward_error)
+    jvp = staticmethod(ops.double_backward_error)
 
 
 def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | None = None,
@@ -99,9 +120,9 @@ def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | 
         return render_with_stats(scene, spp, seed, rows)[0]
     height, width = _image_size(scene)
     args = (scene._handle, height, width, spp, ops.signed_seed(seed), spp_grad, ops.signed_seed(seed_grad))
-    if _has_tangent(params):
-        return _RenderDual.apply(*args, *params)
-    return ops.render(params, *args)
+    if torch.compiler.is_compiling():
+        return ops.render(params, *args)
+    return _Render.apply(*args, *params)
 
 
 def render_with_stats(scene: Scene, spp: int | None = None, seed: int = 0,
