@@ -99,7 +99,7 @@ struct BSDFQuery {
     /// A texture input of this BSDF at the surface point.
     template <typename S>
     S texture(const TextureRef &t) const {
-        return eval_texture<S>(t, ctx.bitmaps, ctx.params, si.uv);
+        return eval_texture<S>(t, ctx.textures, ctx.params, si.uv);
     }
     /// The roughness parameter, with its derivative (R = real_t<S>) or detached (float, read
     /// straight from the values so that autodiff types record nothing).

@@ -15,8 +15,14 @@ KEY = "red.reflectance.value"
 
 
 def _edited_scene(tmp_path, dtype=torch.float32):
-    """Every kind of shape, BSDF, emitter and a texture, with parameters edited in place."""
-    scene = tr.load_dict(glossy_box(res=8, max_depth=6, texture=_texture(tmp_path)), dtype=dtype)
+    """Every kind of shape, BSDF, emitter, a bitmap and a checkerboard with to_uv, with
+    parameters edited in place."""
+    d = glossy_box(res=8, max_depth=6, texture=_texture(tmp_path))
+    d["back"]["bsdf"] = {"type": "diffuse", "reflectance": {
+        "type": "checkerboard", "color0": 0.2, "color1": 0.8,
+        "to_uv": tr.Transform.scale([4, 3, 1]) @ tr.Transform.translate([0.25, 0, 0])}}
+    scene = tr.load_dict(d, dtype=dtype)
+    assert "back.bsdf.reflectance.to_uv" in scene.params
     with torch.no_grad():
         scene.params[KEY].mul_(0.5)
         scene.params["floor.bsdf.reflectance.data"][0, 0] = 0.9
