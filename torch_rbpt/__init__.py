@@ -5,7 +5,7 @@ Load Mitsuba 3 scenes with `load_file` / `load_dict`, read and edit their parame
 """
 import torch  # noqa: F401  (loads libtorch before the extension)
 
-from . import _C  # noqa: F401
+from . import _C, ops  # noqa: F401  (ops registers the torch.ops.torch_rbpt operators)
 from .images import read_image, write_image
 from .loader import load_dict, load_file
 from .mitsuba_xml import SceneError

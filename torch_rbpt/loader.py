@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import _C, meshes, spectra
+from . import meshes, spectra
 from .images import read_image
 from .mitsuba_xml import SceneError, read_xml
-from .scene import Film, Integrator, Scene, Sensor
+from .scene import Film, Integrator, NativeScene, Scene, Sensor
 from .transform import Transform, as_matrix
 
 CATEGORY = {
@@ -129,7 +129,7 @@ class _Builder:
         _check_plugin_dicts(scene, "scene")
         self.search = [base_dir] + list(scene.get("__search__", []))
         self.dtype = dtype
-        self.native = _C.Scene()
+        self.native = NativeScene()
         self.params: dict[str, torch.Tensor] = {}
         self.fixed: dict[str, tuple] = {}  # key -> (tensor, why it cannot be differentiated)
         self.objects = {}  # id -> plugin dict (top-level ones, then nested ones with an id)
@@ -219,12 +219,12 @@ class _Builder:
             self.fail(node, f"'{key}' has a non-finite value ({t.flatten().tolist()[:3]}{'...' if t.numel() > 3 else ''}): "
                             f"parameters must be finite")
         self.params[key] = t
-        return self.native.add_param(key, t.numel())
+        return self.native.add("param", key, t.numel())
 
     def add_native(self, node, what: str, *args) -> int:
         """`self.native.add_<what>(*args)`; the core's ValueErrors are re-raised naming the plugin."""
         try:
-            return getattr(self.native, f"add_{what}")(*args)
+            return self.native.add(what, *args)
         except ValueError as e:
             self.fail(node, f"{node['type']}: {e}")
 
@@ -752,7 +752,6 @@ class _Builder:
             # A top-level film, rfilter or sampler is used where a sensor (or film) references it.
         if sensor is None:
             sensor = Sensor()
-        self.native.build()
         return Scene(self.native, self.params, sensor, integrator, source, self.fixed)
 
 

@@ -1,24 +1,15 @@
 """Rendering entry points: `render` (differentiable), `render_forward` (forward-mode
-derivative images) and the `_Render` autograd.Function that connects them to torch."""
+derivative images), both calling the custom operators of `ops.py`."""
 from __future__ import annotations
 
 import numbers
 
 import torch
 
-from . import _C
+from . import _C, ops
 from .scene import Scene
 
 _SEED_GRAD_MIX = 0x5DEECE66D  # nonzero: a derived seed_grad never equals seed
-
-
-def _plain(x: torch.Tensor) -> torch.Tensor:
-    """The underlying tensor of a torch.func (functorch) wrapper, which has no storage of its
-    own for the C++ core to read; plain tensors pass through."""
-    from torch._C._functorch import get_unwrapped, is_functorch_wrapped_tensor
-    while is_functorch_wrapped_tensor(x):
-        x = get_unwrapped(x)
-    return x
 
 
 def default_seed_grad(seed: int) -> int:
@@ -38,46 +29,68 @@ def _check_spp(name: str, spp) -> int:
     return int(spp)
 
 
+def _image_size(scene: Scene) -> tuple[int, int]:
+    _, _, width, height = scene.sensor.film.crop_window()
+    return height, width
+
+
 class _Render(torch.autograd.Function):
-    """image = render(params). Forward renders with `seed` and saves only the parameters;
-    backward re-traces `spp_grad` paths with `seed_grad` carrying the image adjoint
-    (radiative backpropagation); jvp renders with dual numbers."""
+    """Eager render: the forward is torch_rbpt::render, backward torch_rbpt::render_bwd (as the
+    operator's registered autograd), jvp torch_rbpt::render_jvp on the forward's seed.
+
+    torch.compile traces the operator itself instead (a custom jvp breaks its graph). Eager
+    code keeps this Function: it adds forward mode and torch.func.grad, and concurrent
+    backward passes through one image (examples/gradient_image.py) are safe here, where
+    torch 2.13's register_autograd wrapper swaps ctx.needs_input_grad during backward."""
+
+    generate_vmap_rule = True  # vmap goes through the operators' own vmap rules
 
     @staticmethod
-    def forward(scene, camera, integrator, spp, seed, spp_grad, seed_grad, *params):
-        values = [p.detach().contiguous() for p in params]
-        image, _ = _C.render_fwd(scene._native, camera, integrator, values, spp, seed, 0, -1)
-        return image
+    def forward(scene, height, width, spp, seed, spp_grad, seed_grad, *params):
+        return ops.render(list(params), scene, height, width, spp, seed, spp_grad, seed_grad)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        scene, camera, integrator, spp, seed, spp_grad, seed_grad, *params = inputs
-        ctx.scene, ctx.camera, ctx.integrator = scene, camera, integrator
-        ctx.spp, ctx.seed, ctx.spp_grad, ctx.seed_grad = spp, seed, spp_grad, seed_grad
+        scene, height, width, spp, seed, spp_grad, seed_grad, *params = inputs
+        ctx.args = scene, height, width, spp, seed, spp_grad, seed_grad
         ctx.save_for_backward(*params)
-        # For jvp: detached views of the values (no copy). Saved tensors come back wrapped
-        # under torch.func transforms, where the C++ core needs plain storage.
-        ctx.values = [p.detach() for p in params]
+        ctx.save_for_forward(*params)
         ctx.set_materialize_grads(False)
 
     @staticmethod
+    def jvp(ctx, *tangents):
+        scene, height, width, spp, seed, _, _ = ctx.args
+        return ops.render_jvp(list(ctx.saved_tensors), list(tangents[7:]), scene, height, width, spp, seed)
+
+    @staticmethod
     def backward(ctx, grad_image):
+        scene, height, width, _, _, spp_grad, seed_grad = ctx.args
         params = ctx.saved_tensors
         needs = list(ctx.needs_input_grad[7:])
         if grad_image is None or not any(needs):
             return (None,) * (7 + len(params))
-        values = [p.detach().contiguous() for p in params]
-        grads = _C.render_bwd(ctx.scene._native, ctx.camera, ctx.integrator, values, needs,
-                              grad_image, ctx.spp_grad, ctx.seed_grad)
-        return (None,) * 7 + tuple(None if g is None else g.view_as(p) for g, p in zip(grads, params))
+        grads = iter(_RenderBwd.apply((scene, height, width, spp_grad, seed_grad), needs,
+                                      grad_image, *params))
+        return (None,) * 7 + tuple(next(grads) if n else None for n in needs)
+
+
+class _RenderBwd(torch.autograd.Function):
+    """torch_rbpt::render_bwd for _Render.backward: differentiating it (double backward, or
+    forward mode through a gradient) is a clear error, also when only the parameters require
+    grad."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def jvp(ctx, *tangents):
-        t = [None if x is None else _plain(x.detach()).contiguous() for x in tangents[7:]]
-        values = [_plain(p).contiguous() for p in ctx.values]
-        _, derivative = _C.render_jvp(ctx.scene._native, ctx.camera, ctx.integrator, values, t,
-                                      ctx.spp, ctx.seed)
-        return derivative
+    def forward(args, needs, grad_image, *params):
+        return tuple(ops.render_bwd(list(params), grad_image, needs, *args))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    backward = staticmethod(ops.double_backward_error)
+    jvp = staticmethod(ops.double_backward_error)
 
 
 def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | None = None,
@@ -103,9 +116,13 @@ def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | 
         if torch.is_grad_enabled() and any(p.requires_grad for p in params):
             raise ValueError("rows= renders a band of an image and is not differentiable; "
                              "render the whole image or use torch.no_grad()")
+        scene.check_fixed()
         return render_with_stats(scene, spp, seed, rows)[0]
-    return _Render.apply(scene, scene.sensor.native(), scene.integrator.native(), spp, seed,
-                         spp_grad, seed_grad, *params)
+    height, width = _image_size(scene)
+    args = (scene._handle, height, width, spp, ops.signed_seed(seed), spp_grad, ops.signed_seed(seed_grad))
+    if torch.compiler.is_compiling():
+        return ops.render(params, *args)
+    return _Render.apply(*args, *params)
 
 
 def render_with_stats(scene: Scene, spp: int | None = None, seed: int = 0,
@@ -126,8 +143,8 @@ def render_forward(scene: Scene, tangents: dict, spp: int | None = None, seed: i
     dtype. With the same seed it is the exact derivative of `render(scene, spp, seed)`."""
     spp = _check_spp("spp", scene.sensor.spp if spp is None else spp)
     seed = _check_seed("seed", seed)
-    scene.differentiable_inputs()  # checks fixed parameters
+    scene.differentiable_inputs()  # checks fixed parameters (and the operator, edits)
     t = scene.tangent_list(tangents)
-    _, derivative = _C.render_jvp(scene._native, scene.sensor.native(), scene.integrator.native(),
-                                  scene.param_list(), t, spp, seed)
-    return derivative
+    height, width = _image_size(scene)
+    return ops.render_jvp(scene.param_list(), t, scene._handle, height, width, spp,
+                          ops.signed_seed(seed))

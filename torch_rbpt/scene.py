@@ -1,5 +1,6 @@
 """The loaded scene: its parameters (live torch tensors keyed by Mitsuba's traverse keys),
-its sensor and film, its integrator settings, and the C++ scene they feed."""
+its sensor and film, its integrator settings, and the C++ scene they feed. Scenes pickle and
+deep-copy: the C++ scene is rebuilt from the calls that built it."""
 from __future__ import annotations
 
 from collections.abc import MutableMapping
@@ -8,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from . import _C
+from . import _C, ops
 
 
 class SceneParams(MutableMapping):
@@ -54,6 +55,16 @@ class SceneParams(MutableMapping):
 
     def __len__(self) -> int:
         return len(self._tensors)
+
+    def __getstate__(self) -> dict:
+        # Tensor versions restart at 0 in a copy: keep which fixed parameters were edited.
+        edited = [k for k in self._fixed if self._tensors[k]._version != self._fixed_versions[k]]
+        return {"tensors": self._tensors, "fixed": self._fixed, "edited": edited}
+
+    def __setstate__(self, state: dict) -> None:
+        self._tensors, self._fixed = state["tensors"], state["fixed"]
+        self._fixed_versions = {k: -1 if k in state["edited"] else self._tensors[k]._version
+                                for k in self._fixed}
 
     def __repr__(self) -> str:
         rows = [f"  {k}: {tuple(v.shape)} {str(v.dtype).replace('torch.', '')}" for k, v in self._tensors.items()]
@@ -150,12 +161,43 @@ class Integrator:
                 "bsdf_samples": self.bsdf_samples, "hide_emitters": self.hide_emitters}
 
 
-class Scene:
-    """A loaded scene. Create with `torch_rbpt.load_file` or `torch_rbpt.load_dict`."""
+class NativeScene:
+    """Builds a C++ scene (`_C.Scene`) and records the calls that built it, so that a copy
+    can replay them (the build is deterministic: the copy renders bitwise alike)."""
 
-    def __init__(self, native: "_C.Scene", params: dict[str, torch.Tensor], sensor: Sensor,
+    def __init__(self):
+        self.scene = _C.Scene()
+        self.calls: list[tuple[str, tuple]] = []
+
+    def add(self, what: str, *args) -> int:
+        """`scene.add_<what>(*args)` (param, bitmap, checkerboard, bsdf, mesh, sphere, emitter)."""
+        index = getattr(self.scene, f"add_{what}")(*args)
+        self.calls.append((what, args))
+        return index
+
+    def build(self) -> "_C.Scene":
+        self.scene.build()
+        return self.scene
+
+    @classmethod
+    def replay(cls, calls: list) -> "_C.Scene":
+        native = cls()
+        for what, args in calls:
+            native.add(what, *args)
+        return native.build()
+
+
+class Scene:
+    """A loaded scene. Create with `torch_rbpt.load_file` or `torch_rbpt.load_dict`.
+
+    Scenes pickle and deep-copy (parameters with their current values and requires_grad,
+    sensor, integrator); a copy renders bitwise the same images."""
+
+    def __init__(self, native: NativeScene, params: dict[str, torch.Tensor], sensor: Sensor,
                  integrator: Integrator, source: str = "<dict>", fixed: dict | None = None):
-        self._native = native
+        self._native = native.build()
+        self._calls = native.calls
+        self._handle = ops.register_scene(self)  # names the scene to the custom operators
         self._keys = list(params)  # order of the C++ parameter registry
         fixed = fixed or {}
         self.params = SceneParams({**params, **{k: v for k, (v, _) in fixed.items()}},
@@ -182,15 +224,20 @@ class Scene:
 
     def differentiable_inputs(self) -> list[torch.Tensor]:
         """The parameter tensors in registry order (what render() differentiates), after
-        checking that no fixed parameter (geometry, IOR) was edited or marked for gradients."""
+        checking that no fixed parameter (geometry, IOR) is marked for gradients."""
         p = self.params
         for k, why in p._fixed.items():
-            t = p._tensors[k]
-            if t.requires_grad:
+            if p._tensors[k].requires_grad:
                 raise ValueError(f"scene parameter '{k}' cannot be differentiated: {why}")
-            if t._version != p._fixed_versions[k]:
-                raise ValueError(f"scene parameter '{k}' was edited, which is not supported: {why}")
         return [p._tensors[k] for k in self._keys]
+
+    def check_fixed(self) -> None:
+        """Check that no fixed parameter was edited in place. The operators call it when they
+        run (a tensor's version is runtime state, which torch.compile cannot guard on)."""
+        p = self.params
+        for k, why in p._fixed.items():
+            if p._tensors[k]._version != p._fixed_versions[k]:
+                raise ValueError(f"scene parameter '{k}' was edited, which is not supported: {why}")
 
     def tangent_list(self, tangents: dict) -> list:
         """Tangents in registry order for render_forward (None where absent), checked."""
@@ -221,6 +268,14 @@ class Scene:
                                  f"{dtype}: all parameters must share one dtype")
             out.append(t.detach().contiguous())
         return out
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in ("_native", "_handle")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._native = NativeScene.replay(self._calls)
+        self._handle = ops.register_scene(self)
 
     def __repr__(self) -> str:
         f = self.sensor.film
