@@ -22,7 +22,7 @@ from .transform import Transform, as_matrix
 CATEGORY = {
     "diffuse": "bsdf", "twosided": "bsdf", "conductor": "bsdf", "roughconductor": "bsdf",
     "dielectric": "bsdf", "roughplastic": "bsdf",
-    "obj": "shape", "ply": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape",
+    "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape",
     "area": "emitter", "point": "emitter", "constant": "emitter",
     "bitmap": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
@@ -41,6 +41,7 @@ PROPERTIES = {
                      "int_ior", "ext_ior", "nonlinear", "sample_visible"},
     "obj": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
     "ply": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
+    "serialized": {"filename", "shape_index", "face_normals", "flip_normals", "to_world"},
     "rectangle": {"flip_normals", "to_world"},
     "cube": {"flip_normals", "to_world"},
     "sphere": {"center", "radius", "flip_normals", "to_world"},
@@ -432,15 +433,21 @@ class _Builder:
             shape = self.add_native(node, "sphere", m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
             self.add_fixed(f"{key}.to_world", m, GEOMETRY)
         else:
-            if t in ("obj", "ply"):
+            if t in ("obj", "ply", "serialized"):
                 if "filename" not in node:
                     self.fail(node, f"{t}: missing parameter 'filename'")
                 path = self.resolve(node, node["filename"])
                 face_normals = self.number(node, "face_normals", False, bool)
-                flip_tex = self.number(node, "flip_tex_coords", t == "obj", bool)
                 try:
-                    mesh = (meshes.load_obj if t == "obj" else meshes.load_ply)(
-                        path, face_normals=face_normals, flip_tex_coords=flip_tex)
+                    if t == "serialized":
+                        index = self.number(node, "shape_index", 0, int)
+                        if index < 0:
+                            self.fail(node, f"serialized: shape_index must be >= 0, got {index}")
+                        mesh = meshes.load_serialized(path, index, face_normals=face_normals)
+                    else:
+                        flip_tex = self.number(node, "flip_tex_coords", t == "obj", bool)
+                        mesh = (meshes.load_obj if t == "obj" else meshes.load_ply)(
+                            path, face_normals=face_normals, flip_tex_coords=flip_tex)
                 except meshes.MeshError as e:
                     self.fail(node, f"{t}: {e}")
             else:
