@@ -22,7 +22,8 @@ from .transform import Transform, as_matrix
 CATEGORY = {
     "diffuse": "bsdf", "twosided": "bsdf", "conductor": "bsdf", "roughconductor": "bsdf",
     "dielectric": "bsdf", "roughplastic": "bsdf",
-    "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape",
+    "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape", "disk": "shape", "cylinder": "shape",
+    "shapegroup": "shape", "instance": "shape",
     "area": "emitter", "point": "emitter", "constant": "emitter",
     "bitmap": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
@@ -45,6 +46,10 @@ PROPERTIES = {
     "rectangle": {"flip_normals", "to_world"},
     "cube": {"flip_normals", "to_world"},
     "sphere": {"center", "radius", "flip_normals", "to_world"},
+    "disk": {"flip_normals", "to_world"},
+    "cylinder": {"p0", "p1", "radius", "flip_normals", "to_world"},
+    "shapegroup": set(),
+    "instance": {"to_world"},
     "area": {"radiance"},
     "point": {"position", "intensity", "to_world"},
     "constant": {"radiance"},
@@ -120,6 +125,8 @@ class _Builder:
         self.objects = {}  # id -> top-level plugin dict
         self.built_bsdfs: dict[int, int] = {}  # id(node) -> native BSDF index
         self.built_textures: dict[int, tuple] = {}
+        self.built_shapes: set[int] = set()  # id(node) of shapes built (shapegroup members)
+        self.default_bsdfs: dict[int, dict] = {}  # id(shape node) -> its default BSDF
         for key, value in scene.items():
             if _is_plugin(value) and value["type"] != "ref":
                 self.objects[value.get("__id__", key)] = value
@@ -408,9 +415,48 @@ class _Builder:
 
     # -- shapes and emitters -------------------------------------------------------------------
 
-    def shape(self, node, key: str) -> None:
-        self.check(node, "shape", nested=("bsdf", "emitter"))
+    def shapegroup(self, node, key: str) -> None:
+        """Validate a shapegroup (Mitsuba: no emitters, no nested groups). Its shapes are built
+        by each instance that references it."""
+        self.check(node, "shape", nested=("shape",))
+        for _, child, _ in self.nested(node, "shape"):
+            if child["type"] in ("shapegroup", "instance"):
+                self.fail(child, f"shapegroup: a {child['type']} cannot be nested in a shapegroup "
+                                 f"(Mitsuba: 'Nested ShapeGroup is not permitted')")
+            if self.nested(child, "emitter"):
+                self.fail(child, "shapegroup: shapes in a shapegroup cannot have emitters "
+                                 "(Mitsuba: 'Instancing of emitters is not supported')")
+
+    def instance(self, node, key: str) -> None:
+        """Mitsuba's `instance` of a shapegroup, flattened: each shape of the group is added
+        again under instance.to_world @ its own to_world. The group's shapes keep the keys
+        `<group id>.<shape key>...` (BSDFs shared by all instances), the instance has
+        `<key>.to_world` (read-only, like all geometry)."""
+        self.check(node, "shape", nested=("shape",))
+        groups = self.nested(node, "shape")
+        if len(groups) != 1 or groups[0][1]["type"] != "shapegroup":
+            self.fail(node, "instance: needs exactly one shapegroup (Mitsuba: 'Only a shapegroup "
+                            "can be specified in an instance')")
+        group = groups[0][1]
+        self.shapegroup(group, group.get("__id__", "shapegroup"))
+        gkey = group.get("__id__", f"{key}.shapegroup")
+        matrix = self.matrix(node)
+        self.add_fixed(f"{key}.to_world", matrix, GEOMETRY)
+        for ckey, child, _ in self.nested(group, "shape"):
+            self.shape(child, f"{gkey}.{child.get('__id__', ckey)}", instance=matrix)
+
+    def shape(self, node, key: str, instance=None) -> None:
+        """Add a shape; `instance` (4x4) is the to_world of an instance of the shapegroup that
+        holds it, applied after the shape's own to_world. Keys are registered once, with the
+        shape's values in its group's space, as Mitsuba's."""
         t = node["type"]
+        if t == "shapegroup":
+            return self.shapegroup(node, key)
+        if t == "instance":
+            return self.instance(node, key)
+        self.check(node, "shape", nested=("bsdf", "emitter"))
+        first = instance is None or id(node) not in self.built_shapes
+        self.built_shapes.add(id(node))
         bsdfs = self.nested(node, "bsdf")
         if len(bsdfs) > 1:
             self.fail(node, f"{t}: a shape takes one BSDF, got {len(bsdfs)}")
@@ -418,20 +464,45 @@ class _Builder:
             name, child, referenced = bsdfs[0]
             bsdf = self.bsdf(child, child.get("__id__", f"{key}.bsdf"))
         else:  # Mitsuba's default: a diffuse BSDF of reflectance 0.5
-            bsdf = self.bsdf({"type": "diffuse", "__where__": _where(node)}, f"{key}.bsdf")
+            default = self.default_bsdfs.setdefault(id(node), {"type": "diffuse", "__where__": _where(node)})
+            bsdf = self.bsdf(default, f"{key}.bsdf")
         flip = self.number(node, "flip_normals", False, bool)
         to_world = self.matrix(node)
+        self.build_shape(node, key, t, bsdf, flip, to_world, instance, first)
+
+    def build_shape(self, node, key, t, bsdf, flip, to_world, instance, first) -> None:
+        inst = np.eye(4) if instance is None else instance
+
+        def fixed(name, value):  # a group's shape registers its keys at its first instance
+            if first:
+                self.add_fixed(f"{key}.{name}", value, GEOMETRY)
+
         if t == "sphere":
             center = self.vector(node, "center", [0, 0, 0])
             radius = self.number(node, "radius", 1.0)
             m = to_world @ Transform.translate(center).matrix @ Transform.scale(radius).matrix
+            fixed("to_world", m)
+            m = inst @ m
             axes = m[:3, :3]
             scales = np.linalg.norm(axes, axis=0)
             if not np.allclose(scales, scales[0], rtol=1e-4) or scales[0] <= 0:
-                self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
+                self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})"
+                                + ("; an instance's to_world included (Mitsuba renders an ellipsoid)"
+                                   if instance is not None else ""))
             frame = (axes / scales).T.tolist()
             shape = self.add_native(node, "sphere", m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
-            self.add_fixed(f"{key}.to_world", m, GEOMETRY)
+        elif t == "disk":
+            fixed("to_world", to_world @ np.diag([1, 1, -1 if flip else 1, 1]))
+            to_world = inst @ to_world
+            axes = to_world[:3, :3].T.astype(np.float32)
+            radius = float(np.linalg.norm(axes[:2], axis=1).max())  # bounds p's rounding error
+            shape = self.add_native(node, "disk_or_cylinder", "disk", to_world[:3, 3].tolist(),
+                                    axes.tolist(), radius, 1.0, bsdf, flip)
+        elif t == "cylinder":
+            fixed("to_world", self.cylinder_frame(node, to_world)[4])
+            center, axes, radius, length, _ = self.cylinder_frame(node, inst @ to_world)
+            shape = self.add_native(node, "disk_or_cylinder", "cylinder", center, axes, radius,
+                                    length, bsdf, flip)
         else:
             if t in ("obj", "ply", "serialized"):
                 if "filename" not in node:
@@ -457,9 +528,17 @@ class _Builder:
             except meshes.MeshError as e:  # e.g. a singular to_world
                 self.fail(node, f"{t}: to_world: {e}")
             if t == "rectangle":
-                self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
+                fixed("to_world", to_world)
             else:
-                self.add_fixed(f"{key}.vertex_positions", mesh.positions.reshape(-1), GEOMETRY)
+                fixed("vertex_positions", mesh.positions.reshape(-1))
+            if instance is not None:
+                # An instance transforms the group's mesh, normals by the inverse transpose
+                # (computed normals are not recomputed, as Mitsuba's instance)
+                mesh.computed_normals = False
+                try:
+                    mesh = mesh.transformed(instance)
+                except meshes.MeshError as e:
+                    self.fail(node, f"{t}: instance to_world: {e}")
             shape = self.add_native(node, "mesh",
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
@@ -476,6 +555,44 @@ class _Builder:
             if bitmap >= 0:
                 self.fail(em, "area: textured radiance is not supported")
             self.add_native(em, "emitter", "area", param, shape, [])
+
+    def cylinder_frame(self, node, to_world: np.ndarray):
+        """Mitsuba's cylinder: to_world @ translate(p0) @ to_frame(Frame(unit(p1 - p0))) @
+        scale(radius, radius, |p1 - p0|), split by polar decomposition into a rotation (the
+        axes) and the radius and length. Returns (p0 in world, axes as rows, radius, length,
+        the whole matrix: Mitsuba's `to_world` key).
+        Shear, a non-uniform scale of the cross-section and mirroring are refused: Mitsuba
+        3.9.1 warns and then renders a shape whose silhouette does not match its own surface
+        (or nothing)."""
+        p0 = self.vector(node, "p0", [0, 0, 0])
+        p1 = self.vector(node, "p1", [0, 0, 1])
+        radius = self.number(node, "radius", 1.0)
+        axis = p1 - p0
+        length = float(np.linalg.norm(axis))
+        if not (radius > 0 and length > 0):
+            self.fail(node, f"cylinder: radius and |p1 - p0| must be positive, got {radius} and {length}")
+        n = axis / length
+        sign = float(np.copysign(1.0, n[2]))  # Mitsuba's coordinate_system (Duff et al. 2017)
+        a = -1.0 / (sign + n[2])
+        b = n[0] * n[1] * a
+        s_axis = np.array([1 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
+        t_axis = np.array([b, sign + n[1] * n[1] * a, -n[1]])
+        m = to_world[:3, :3] @ np.column_stack([s_axis, t_axis, n]) @ np.diag([radius, radius, length])
+        u, sigma, vt = np.linalg.svd(m)
+        q = u @ vt
+        sym = vt.T @ np.diag(sigma) @ vt
+        r, l = sym[0, 0], sym[2, 2]
+        if np.linalg.det(m) <= 0:
+            self.fail(node, "cylinder: to_world must not mirror (Mitsuba 3.9.1 renders nothing)")
+        off = np.abs(sym - np.diag(np.diag(sym))).max()
+        if off > 1e-5 * max(r, l) or abs(sym[0, 0] - sym[1, 1]) > 1e-5 * r:
+            self.fail(node, "cylinder: to_world must scale the cross-section uniformly and not shear "
+                            f"(scales {np.diag(sym).round(6).tolist()}); Mitsuba 3.9.1 warns and "
+                            f"renders a shape inconsistent with its own surface")
+        center = (to_world @ np.append(p0, 1.0))[:3]
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = m, center
+        return center.tolist(), q.T.tolist(), float(r), float(l), matrix
 
     def emitter(self, node, key: str) -> None:
         self.check(node, "emitter")

@@ -9,6 +9,9 @@ Writes into tests/references/shapes/:
   the file's face-normals flag), and ``meshes_v3.serialized`` (the same, version 3, float32);
 - ``serialized_mitsuba.json``: what Mitsuba 3 loads from them (``mi.traverse`` arrays) for each
   shape_index, with and without ``face_normals``, under the identity and under ``TO_WORLD``;
+- ``objects.serialized`` and ``stripes.exr``: the mesh file and texture of analytic_shapes.xml;
+- ``analytic_hits.json``: rays at disks and cylinders (HIT_CASES) and at instances.xml, and
+  Mitsuba's hits;
 - ``<name>.exr`` and ``renders.json``: converged renders of the scenes in this folder (64 x 48,
   float32 RGB, ZIP), the mean of two half-spp renders with seeds 1 and 2, with their noise as in
   make_references.py.
@@ -21,6 +24,10 @@ import time
 
 import numpy as np
 
+# Mitsuba's LLVM variant needs libLLVM 19 (see benchmarks/mitsuba_ref.py), set before import.
+if os.path.exists("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"):
+    os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1")
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "shapes")
 ROOT = os.path.normpath(os.path.join(HERE, "..", ".."))
@@ -28,7 +35,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 sys.path.insert(0, HERE)
 
-from torch_rbpt.meshes import write_serialized  # noqa: E402
+from torch_rbpt.meshes import cube, write_serialized  # noqa: E402
 
 # A rotation about a normalized axis (Mitsuba's rotate() does not normalize its axis), a
 # non-uniform scale and a translation.
@@ -49,6 +56,7 @@ MESHES = [
 # Rendered scenes: name -> (xml file in this folder, total spp)
 RENDERS = {
     "analytic_shapes": ("analytic_shapes.xml", 65536),
+    "cylinder_light": ("cylinder_light.xml", 65536),
 }
 
 
@@ -86,6 +94,107 @@ def make_serialized(mi):
     print("wrote serialized files and serialized_mitsuba.json")
 
 
+def uv_sphere(n_theta=10, n_phi=16):
+    """A low-poly sphere (no normals, no uvs: Mitsuba computes smooth normals)."""
+    theta = np.linspace(0, np.pi, n_theta + 1)[1:-1]
+    phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
+    ring = np.stack([np.outer(np.sin(theta), np.cos(phi)), np.outer(np.sin(theta), np.sin(phi)),
+                     np.outer(np.cos(theta), np.ones_like(phi))], -1).reshape(-1, 3)
+    positions = np.vstack([[0, 0, 1], ring, [0, 0, -1]])
+    faces, last = [], len(positions) - 1
+    idx = lambda i, j: 1 + i * n_phi + j % n_phi
+    for j in range(n_phi):
+        faces.append([0, idx(0, j), idx(0, j + 1)])
+        faces.append([last, idx(n_theta - 2, j + 1), idx(n_theta - 2, j)])
+        for i in range(n_theta - 2):
+            faces.append([idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)])
+            faces.append([idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)])
+    return positions, np.array(faces)
+
+
+def make_scene_files():
+    """objects.serialized (a cube with normals and uvs, a sphere without) and stripes.exr."""
+    import make_references as mr
+    c = cube()
+    sphere_p, sphere_f = uv_sphere()
+    write_serialized(os.path.join(OUT, "objects.serialized"),
+                     [dict(positions=c.positions, faces=c.faces, normals=c.normals, uvs=c.uvs),
+                      dict(positions=sphere_p, faces=sphere_f)], version=4)
+    u = (np.arange(16) + 0.5) / 16
+    img = np.zeros((16, 16, 3), np.float32)
+    img[..., 0] = 0.15 + 0.7 * (np.floor(u * 4) % 2)[None, :]   # 4 stripes along u (columns)
+    img[..., 1] = 0.2 + 0.6 * u[:, None]                        # a ramp along v (rows)
+    img[..., 2] = 0.3
+    mr.write_exr(os.path.join(OUT, "stripes.exr"), img)
+
+
+# Analytic shapes whose ray hits are recorded: (type, parameters; to_world as (translate,
+# axis, angle, scale) applied scale first).
+HIT_CASES = [
+    ("disk", {}), ("disk", {"flip_normals": True}),
+    ("disk", {"to_world": ([0.5, -1, 2], AXIS, 30, [2, 1, 0.5])}),
+    ("disk", {"to_world": ([0, 0, 0], [0, 0, 1], 0, [1, 1, -1])}),
+    ("cylinder", {}), ("cylinder", {"flip_normals": True}),
+    ("cylinder", {"radius": 0.5, "p0": [0, 0, 0], "p1": [1, 2, 2]}),
+    ("cylinder", {"radius": 0.3, "p0": [0.2, 0.1, 1], "p1": [0.2, 0.3, -1]}),
+    ("cylinder", {"to_world": ([0.5, -1, 2], AXIS, 30, [2, 2, 0.5]), "p1": [0, 0, 3]}),
+]
+
+
+def make_hits(mi, n=120):
+    """Rays at each HIT_CASES shape (origins around it, aimed into its box) and Mitsuba's
+    hits: t (inf for a miss), p, n, uv."""
+    rng = np.random.default_rng(1)
+    cases = []
+    for kind, params in HIT_CASES:
+        props = dict(params)
+        if "to_world" in props:
+            tw, axis, angle, scale = props["to_world"]
+            props["to_world"] = (mi.ScalarTransform4f().translate(tw) @
+                                 mi.ScalarTransform4f().rotate(axis, angle) @
+                                 mi.ScalarTransform4f().scale(scale))
+        scene = mi.load_dict({"type": "scene", "s": dict(type=kind, **props)})
+        bb = scene.bbox()
+        lo, hi = np.array(bb.min), np.array(bb.max)
+        c, ext = (lo + hi) / 2, np.linalg.norm(hi - lo)
+        # (rounded to 5 decimals, so that the json's decimals give the same float32 rays)
+        o = np.round(c + rng.normal(size=(n, 3)) * ext * 2, 5)
+        d = (c + (rng.uniform(size=(n, 3)) - 0.5) * (hi - lo) * 1.2) - o
+        d = np.round(d / np.linalg.norm(d, axis=1, keepdims=True), 5)
+        o, d = o.astype(np.float32), d.astype(np.float32)
+        hits = []
+        for i in range(n):
+            si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*o[i]), mi.Vector3f(*d[i])))
+            r6 = lambda v: np.round(np.array(v, dtype=np.float64), 6).tolist()
+            hits.append([round(float(si.t), 6) if si.is_valid() else None, r6(si.p), r6(si.n),
+                         r6(si.uv)])
+        matrix = np.array(props["to_world"].matrix).tolist() if "to_world" in props else None
+        key = np.array(mi.traverse(scene.shapes()[0])["to_world"].matrix).tolist()
+        cases.append(dict(type=kind, params={k: v for k, v in params.items() if k != "to_world"},
+                          to_world=matrix, traverse_to_world=key,
+                          origins=np.round(o.astype(np.float64), 5).tolist(),
+                          directions=np.round(d.astype(np.float64), 5).tolist(), hits=hits))
+    # instances.xml, as a whole scene: hits report the flattened shapes' p, n, uv
+    scene = mi.load_file(os.path.join(OUT, "instances.xml"))
+    bb = scene.bbox()
+    lo, hi = np.array(bb.min), np.array(bb.max)
+    c, ext = (lo + hi) / 2, np.linalg.norm(hi - lo)
+    o = np.round(c + rng.normal(size=(4 * n, 3)) * ext, 5)
+    d = (c + (rng.uniform(size=(4 * n, 3)) - 0.5) * (hi - lo)) - o
+    d = np.round(d / np.linalg.norm(d, axis=1, keepdims=True), 5)
+    hits = []
+    for oi, di in zip(o.astype(np.float32), d.astype(np.float32)):
+        si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*oi), mi.Vector3f(*di)))
+        r6 = lambda v: np.round(np.array(v, dtype=np.float64), 6).tolist()
+        hits.append([round(float(si.t), 6) if si.is_valid() else None, r6(si.p), r6(si.n), r6(si.uv)])
+    keys = sorted(k for k in mi.traverse(scene).keys() if "to_world" in k or "vertex_positions" in k)
+    cases.append(dict(type="scene", file="instances.xml", traverse_keys=keys,
+                      origins=o.tolist(), directions=d.tolist(), hits=hits))
+    with open(os.path.join(OUT, "analytic_hits.json"), "w") as f:
+        json.dump(dict(mitsuba_version=mi.__version__, variant=mi.variant(), cases=cases), f)
+    print("wrote analytic_hits.json")
+
+
 def make_renders(spp_scale):
     import make_references as mr
     import mitsuba_ref
@@ -111,11 +220,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[1])
     ap.add_argument("--spp-scale", type=float, default=1.0)
     ap.add_argument("--no-render", action="store_true")
+    ap.add_argument("--hits-only", action="store_true", help="only the serialized and hit files")
     args = ap.parse_args()
     import mitsuba as mi
     mi.set_variant("scalar_rgb")
     t0 = time.time()
     make_serialized(mi)
+    make_hits(mi)
+    if args.hits_only:
+        return
+    make_scene_files()
     if not args.no_render:
         make_renders(args.spp_scale)
     print("total %.1f s" % (time.time() - t0))

@@ -1,0 +1,173 @@
+"""Analytic disks and cylinders (csrc/shapes.h) with Mitsuba 3's semantics, against ray hits
+and renders that Mitsuba 3.9.1 made (tests/references/make_shape_references.py; Mitsuba is
+not needed here), and area lights on them against the renderer's own BSDF sampling."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import torch_rbpt as tr
+from conftest import REFERENCES
+
+SHAPES = REFERENCES / "shapes"
+
+
+def hit_cases():
+    return json.loads((SHAPES / "analytic_hits.json").read_text())["cases"]
+
+
+def load_case(case):
+    node = dict(type=case["type"], **case["params"])
+    if case["to_world"] is not None:
+        node["to_world"] = case["to_world"]
+    return tr.load_dict({"type": "scene", "s": node})
+
+
+@pytest.mark.parametrize("index", range(9))
+def test01_hits_match_mitsuba(index):
+    """Hit or miss agrees on every ray (silhouettes); p, n and uv agree to float rounding."""
+    case = hit_cases()[index]
+    scene = load_case(case)
+    o = torch.tensor(case["origins"], dtype=torch.float32)
+    d = torch.tensor(case["directions"], dtype=torch.float32)
+    t, shape, p, n, uv = tr._C.interact_rays(scene._native, o, d)
+    hit = np.array([h[0] is not None for h in case["hits"]])
+    assert 20 < hit.sum() < len(hit) - 20, "the rays should both hit and miss"
+    assert np.array_equal(np.isfinite(t.numpy()), hit)
+    ref_t = np.array([h[0] for h in case["hits"] if h[0] is not None])
+    ref_p, ref_n, ref_uv = (np.array([h[k] for h in case["hits"] if h[0] is not None]) for k in (1, 2, 3))
+    scale = np.abs(ref_p).max() + 1
+    np.testing.assert_allclose(t.numpy()[hit], ref_t, rtol=1e-4, atol=1e-5 * scale)
+    np.testing.assert_allclose(p.numpy()[hit], ref_p, atol=1e-4 * scale)
+    np.testing.assert_allclose(n.numpy()[hit], ref_n, atol=1e-4)
+    duv = np.abs(uv.numpy()[hit] - ref_uv)
+    angle = 1 if case["type"] == "disk" else 0  # the coordinate that is phi / 2pi wraps at 1
+    duv[:, angle] = np.minimum(duv[:, angle], 1 - duv[:, angle])
+    assert duv.max() < 1e-4
+
+
+def _lit_scene(integrator, light):
+    return tr.load_dict({
+        "type": "scene", "integrator": integrator,
+        "sensor": {"type": "perspective", "fov": 60,
+                   "to_world": tr.Transform.look_at([0, -4, 3], [0, 0, 0.5], [0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 16, "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": tr.Transform.scale(3)},
+        "light": dict(light, emitter={"type": "area", "radiance": 5.0}),
+    })
+
+
+@pytest.mark.parametrize("light", [
+    {"type": "disk", "flip_normals": True,
+     "to_world": tr.Transform.translate([0.3, 0, 1.5]) @ tr.Transform.rotate([1, 0, 0], 30) @ tr.Transform.scale([0.8, 0.4, 1])},
+    {"type": "cylinder", "p0": [-0.5, 0.5, 0.3], "p1": [0.6, 0.2, 1.4], "radius": 0.2},
+], ids=["disk", "cylinder"])
+def test02_area_light_sampling_matches_bsdf_sampling(light):
+    """Emitter sampling (area density converted to solid angle) and BSDF sampling estimate
+    the same direct light: image means agree within 4 standard errors (from 4 seeds each)."""
+    means = {}
+    for name, (es, bs) in {"emitter": (1, 0), "bsdf": (0, 1)}.items():
+        scene = _lit_scene({"type": "direct", "emitter_samples": es, "bsdf_samples": bs}, light)
+        m = torch.stack([tr.render(scene, spp=256, seed=s)[8:].mean() for s in range(4)]).double()
+        means[name] = (m.mean(), m.std() / 2)
+    (a, sa), (b, sb) = means["emitter"], means["bsdf"]
+    assert a > 0.02
+    assert abs(a - b) < 4 * float(torch.sqrt(sa ** 2 + sb ** 2)), means
+
+
+def test03_keys_and_read_only_geometry():
+    """Mitsuba's keys (bsdf..., to_world); to_world is read-only, as for spheres."""
+    for case in hit_cases()[:9]:
+        scene = load_case(case)
+        assert "s.bsdf.reflectance.value" in scene.params
+        # Mitsuba's value: a flipped disk's to_world @ scale(1, 1, -1); a cylinder's
+        # to_world @ translate(p0) @ to_frame(p1 - p0) @ scale(radius, radius, length)
+        np.testing.assert_allclose(scene.params["s.to_world"].numpy(), case["traverse_to_world"], atol=1e-5)
+    for index in (2, 8):
+        scene = load_case(hit_cases()[index])
+        scene.params["s.to_world"].add_(1.0)
+        with pytest.raises(ValueError, match="'s.to_world' was edited.*geometry is fixed"):
+            tr.render(scene, spp=1)
+
+
+@pytest.mark.parametrize("node, pattern", [
+    ({"type": "cylinder", "to_world": tr.Transform.scale([2, 1, 1])}, "scale the cross-section uniformly"),
+    ({"type": "cylinder", "to_world": tr.Transform.scale([1, 1, -1])}, "must not mirror"),
+    ({"type": "cylinder", "p0": [0, 0, 1], "p1": [0, 0, 1]}, r"radius and \|p1 - p0\| must be positive"),
+    ({"type": "disk", "to_world": tr.Transform.scale([1, 1, 0])}, "to_world must be finite and invertible"),
+    ({"type": "disk", "radius": 2.0}, "unsupported parameter 'radius'"),
+])
+def test04_unsupported_transforms_are_scene_errors(node, pattern):
+    with pytest.raises(tr.SceneError, match=pattern):
+        tr.load_dict({"type": "scene", "s": node})
+
+
+@pytest.mark.parametrize("name", ["analytic_shapes", "cylinder_light"])
+def test05_agrees_with_mitsuba(name):
+    """Textured disks and cylinders, serialized meshes, lit by a disk light
+    (analytic_shapes.xml) or a cylinder light (cylinder_light.xml), against Mitsuba's
+    converged renders, as test_mitsuba_agreement does: mean relative error of 4 x 4 block
+    means under 0.02, our own noise under 0.007."""
+    entry = json.loads((SHAPES / "renders.json").read_text())[name]
+    scene = tr.load_file(SHAPES / entry["scene"])
+    ref = tr.read_image(SHAPES / entry["exr"])
+    assert ref.shape == (48, 64, 3)
+
+    def blocks(img):
+        return img.reshape(12, 4, 16, 4, 3).mean(dim=(1, 3))
+
+    def metric(img, r):
+        return float(((img - r).abs() / r.abs().clamp(min=0.02)).mean())
+
+    a = blocks(tr.render(scene, spp=1024, seed=11))
+    b = blocks(tr.render(scene, spp=1024, seed=12))
+    noise, error = metric(a, b) / 2, metric((a + b) / 2, blocks(ref))
+    print(f"{name}: error {error:.4f}, our noise {noise:.4f}")
+    assert noise < 0.007
+    assert error < 0.02
+
+
+def test06_instances_match_mitsuba():
+    """instances.xml (a shapegroup of a sphere, a serialized mesh, a disk and a cylinder
+    instanced rigidly and with a uniform scale; a group without spheres instanced with a
+    non-uniform scale) flattened at load: hit or miss agrees with Mitsuba on every ray; p, n
+    and uv to float rounding; geometry keys as Mitsuba's mi.traverse."""
+    case = hit_cases()[-1]
+    assert case["file"] == "instances.xml"
+    scene = tr.load_file(SHAPES / case["file"])
+    keys = set(scene.params.keys())
+    assert set(case["traverse_keys"]) <= keys, set(case["traverse_keys"]) - keys
+    o = torch.tensor(case["origins"], dtype=torch.float32)
+    d = torch.tensor(case["directions"], dtype=torch.float32)
+    t, shape, p, n, uv = tr._C.interact_rays(scene._native, o, d)
+    hit = np.array([h[0] is not None for h in case["hits"]])
+    assert 100 < hit.sum() < len(hit) - 100
+    assert np.array_equal(np.isfinite(t.numpy()), hit)
+    ref_p, ref_n, ref_uv = (np.array([h[k] for h in case["hits"] if h[0] is not None]) for k in (1, 2, 3))
+    np.testing.assert_allclose(p.numpy()[hit], ref_p, atol=1e-4)
+    np.testing.assert_allclose(n.numpy()[hit], ref_n, atol=2e-4)
+    duv = np.abs(uv.numpy()[hit] - ref_uv)
+    assert np.minimum(duv, 1 - duv).max() < 2e-3  # (phi of disks near their centre)
+
+
+def test07_shapegroup_errors_and_shared_parameters():
+    group = {"type": "shapegroup", "s": {"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": 0.3}}}
+
+    def scene(**instances):
+        return tr.load_dict({"type": "scene", "grp": dict(group, __id__="grp"),
+                             **{k: dict(type="instance", shape={"type": "ref", "id": "grp"}, **v)
+                                for k, v in instances.items()}})
+
+    s = scene(a={"to_world": tr.Transform.translate([2, 0, 0])}, b={})
+    # one BSDF shared by both copies, keyed as Mitsuba keys the group's shape
+    assert "grp.s.bsdf.reflectance.value" in s.params and "a.to_world" in s.params and "b.to_world" in s.params
+    with pytest.raises(tr.SceneError, match="ellipsoid"):
+        scene(a={"to_world": tr.Transform.scale([2, 1, 1])})
+    with pytest.raises(tr.SceneError, match="Instancing of emitters is not supported"):
+        tr.load_dict({"type": "scene", "g": {"type": "shapegroup", "__id__": "g", "s": {
+            "type": "sphere", "emitter": {"type": "area"}}}})
+    with pytest.raises(tr.SceneError, match="Nested ShapeGroup"):
+        tr.load_dict({"type": "scene", "g": {"type": "shapegroup", "h": {"type": "shapegroup"}}})
+    with pytest.raises(tr.SceneError, match="Only a shapegroup"):
+        tr.load_dict({"type": "scene", "i": {"type": "instance", "s": {"type": "sphere"}}})
