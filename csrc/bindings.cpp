@@ -35,9 +35,11 @@ Vec3 vec3(const std::vector<float> &v, const char *what) {
 TextureRef texture_ref(const py::object &o) {
     TextureRef t;
     if (o.is_none()) return t;
-    auto pair = o.cast<std::pair<int, int>>();
-    t.param = pair.first;
-    t.bitmap = pair.second;
+    auto values = o.cast<std::vector<int>>();  // (param, bitmap) or (param, bitmap, attribute)
+    if (values.size() != 2 && values.size() != 3) fail("a texture is (param, bitmap[, attribute])");
+    t.param = values[0];
+    t.bitmap = values[1];
+    if (values.size() == 3) t.attribute = values[2];
     return t;
 }
 
@@ -468,6 +470,8 @@ int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
     shape.flip_normals = flip_normals;
     shape.tri_begin = uint32_t(g.triangles.size());
     shape.tri_count = uint32_t(nf);
+    shape.vertex_begin = base;
+    shape.vertex_count = uint32_t(nv);
     const float *p = positions.data_ptr<float>();
     for (int64_t i = 0; i < nv; ++i) g.positions.push_back({p[3 * i], p[3 * i + 1], p[3 * i + 2]});
     // Keep the optional vertex arrays the same length as positions.
@@ -517,6 +521,22 @@ int add_sphere(Scene &scene, const std::vector<float> &center, float radius,
     g.analytic.push_back(uint32_t(g.shapes.size()));
     g.shapes.push_back(shape);
     return int(g.shapes.size()) - 1;
+}
+
+/// Give mesh `shape` its vertex_color (0) or face_color (1) attribute: parameter `param` of
+/// `channels` (1 or 3) values per vertex or face.
+void set_mesh_attribute(Scene &scene, int shape, int which, int param, int channels) {
+    if (shape < 0 || shape >= int(scene.geometry.shapes.size())) fail("shape index out of range");
+    Shape &s = scene.geometry.shapes[shape];
+    if (s.kind != ShapeKind::Mesh) fail("mesh attributes need a mesh");
+    if (which < 0 || which > 1 || (channels != 1 && channels != 3)) fail("bad mesh attribute");
+    if (param < 0 || param >= int(scene.params.size())) fail("unknown parameter");
+    int64_t count = which == 0 ? s.vertex_count : s.tri_count;
+    if (scene.params[param].numel != count * channels)
+        fail("mesh attribute has " + std::to_string(scene.params[param].numel) + " values, expected " +
+             std::to_string(count * channels));
+    s.attribute_param[which] = param;
+    s.attribute_channels[which] = channels;
 }
 
 /// A disk or cylinder: p = center + axes[0] x + axes[1] y + axes[2] z from object space (the
@@ -669,6 +689,7 @@ PYBIND11_MODULE(_C, m) {
              py::arg("uvs"), py::arg("bsdf"), py::arg("flip_normals"))
         .def("add_sphere", &add_sphere)
         .def("add_disk_or_cylinder", &add_disk_or_cylinder)
+        .def("set_mesh_attribute", &set_mesh_attribute)
         .def("add_emitter", &add_emitter)
         .def("build", [](Scene &s) {
             py::gil_scoped_release release;

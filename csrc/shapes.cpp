@@ -83,6 +83,9 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         const Shape &shape = shapes[tri.shape];
         si.shape = int(tri.shape);
         float b1 = hit.u, b2 = hit.v, b0 = 1.f - b1 - b2;
+        si.tri = hit.prim;
+        si.b1 = b1;
+        si.b2 = b2;
         const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
         si.p = p0 * b0 + p1 * b1 + p2 * b2;
         si.p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));

@@ -22,6 +22,10 @@ struct Shape {
     float area = 0.f;
     // Mesh: a range of Geometry::triangles and a CDF over their areas for sampling.
     uint32_t tri_begin = 0, tri_count = 0;
+    uint32_t vertex_begin = 0, vertex_count = 0;  ///< its vertices in Geometry::positions
+    /// Parameters of its `vertex_color` and `face_color` (MeshAttribute), -1 if absent.
+    int attribute_param[2] = {-1, -1};
+    int attribute_channels[2] = {0, 0};
     bool has_normals = false, has_uvs = false;
     std::vector<float> tri_cdf;
     // Sphere: centre, radius and the rotation to its local frame (for uv).
@@ -77,6 +81,8 @@ struct SurfaceInteraction {
     Vec2 uv;
     Vec3 wi;       ///< direction towards the ray origin, in the shading frame
     int shape = -1;
+    uint32_t tri = ~0u;      ///< triangle hit (meshes), for mesh attributes
+    float b1 = 0.f, b2 = 0.f;  ///< its barycentrics of vertices 1 and 2
 
     Vec3 to_local(const Vec3 &v) const { return sh_frame.to_local(v); }
     Vec3 to_world(const Vec3 &v) const { return sh_frame.to_world(v); }

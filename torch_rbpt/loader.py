@@ -25,7 +25,7 @@ CATEGORY = {
     "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape", "disk": "shape", "cylinder": "shape",
     "shapegroup": "shape", "instance": "shape",
     "area": "emitter", "point": "emitter", "constant": "emitter",
-    "bitmap": "texture",
+    "bitmap": "texture", "mesh_attribute": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
     "gaussian": "rfilter", "independent": "sampler",
     "path": "integrator", "prb": "integrator", "direct": "integrator",
@@ -54,6 +54,7 @@ PROPERTIES = {
     "point": {"position", "intensity", "to_world"},
     "constant": {"radiance"},
     "bitmap": {"filename", "raw", "filter_type", "wrap_mode"},
+    "mesh_attribute": {"name", "scale"},
     "perspective": {"fov", "fov_axis", "focal_length", "near_clip", "far_clip", "focus_distance",
                     "to_world", "principal_point_offset_x", "principal_point_offset_y"},
     "hdrfilm": {"width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
@@ -75,6 +76,9 @@ IOR = {
     "sodium chloride": 1.544, "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
 
+
+# Mesh attributes a mesh_attribute texture can read, in the order of the core's MeshAttribute.
+MESH_ATTRIBUTES = ("vertex_color", "face_color")
 
 GEOMETRY = ("geometry is fixed at load: torch_rbpt differentiates materials and emission, not "
             "shapes (visibility gradients are out of scope)")
@@ -127,6 +131,9 @@ class _Builder:
         self.built_textures: dict[int, tuple] = {}
         self.built_shapes: set[int] = set()  # id(node) of shapes built (shapegroup members)
         self.default_bsdfs: dict[int, dict] = {}  # id(shape node) -> its default BSDF
+        self.bsdf_attributes: set = set()  # mesh attributes read by the BSDF being built
+        self.attributes_of_bsdf: dict[int, set] = {}  # native BSDF index -> attributes it reads
+        self.attribute_params: dict = {}  # (id(shape node), name) -> param index
         for key, value in scene.items():
             if _is_plugin(value) and value["type"] != "ref":
                 self.objects[value.get("__id__", key)] = value
@@ -312,6 +319,8 @@ class _Builder:
             return self.add_param(f"{key}.value", v), -1
         if isinstance(value, dict) and value.get("type") == "bitmap":
             return -1, self.bitmap(value, key)
+        if isinstance(value, dict) and value.get("type") == "mesh_attribute":
+            return self.mesh_attribute(owner, value)
         if isinstance(value, dict):
             self.fail(value, f"'{name}': unsupported texture '{value.get('type')}' (supported: rgb, "
                              f"bitmap, or a number)")
@@ -325,6 +334,17 @@ class _Builder:
         except (TypeError, ValueError, OverflowError):
             self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb or bitmap, got {value!r}")
         return self.add_param(f"{key}.value", [v]), -1
+
+    def mesh_attribute(self, owner, node) -> tuple:
+        """Mitsuba's mesh_attribute texture, as a BSDF input: (param, bitmap, attribute)."""
+        self.check(node, "texture")
+        if owner["type"] != "diffuse":
+            self.fail(node, f"mesh_attribute: supported as a diffuse reflectance, not in a {owner['type']}")
+        name = self.string(node, "name", "", ("vertex_color", "face_color"))
+        if self.number(node, "scale", 1.0) != 1.0:
+            self.fail(node, "mesh_attribute: only scale = 1 is supported")
+        self.bsdf_attributes.add(name)
+        return -1, -1, MESH_ATTRIBUTES.index(name)
 
     def bitmap(self, node, key: str) -> int:
         if id(node) in self.built_textures:
@@ -362,6 +382,13 @@ class _Builder:
     def bsdf(self, node, key: str, twosided: bool = False) -> int:
         if id(node) in self.built_bsdfs:
             return self.built_bsdfs[id(node)]
+        outer, self.bsdf_attributes = self.bsdf_attributes, set()
+        index = self.build_bsdf(node, key, twosided)
+        self.attributes_of_bsdf[index] = self.attributes_of_bsdf.get(index, set()) | self.bsdf_attributes
+        self.bsdf_attributes = outer | self.bsdf_attributes
+        return index
+
+    def build_bsdf(self, node, key: str, twosided: bool) -> int:
         key = node.get("__id__", key)
         t = node["type"]
         self.check(node, "bsdf", nested=("bsdf", "texture") if t == "twosided" else ("texture",))
@@ -472,6 +499,7 @@ class _Builder:
 
     def build_shape(self, node, key, t, bsdf, flip, to_world, instance, first) -> None:
         inst = np.eye(4) if instance is None else instance
+        mesh = None
 
         def fixed(name, value):  # a group's shape registers its keys at its first instance
             if first:
@@ -543,6 +571,7 @@ class _Builder:
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
                 None if mesh.uvs is None else torch.from_numpy(mesh.uvs), bsdf, flip)
+        self.mesh_attributes(node, key, t, bsdf, shape, mesh)
         emitters = self.nested(node, "emitter")
         if len(emitters) > 1:
             self.fail(node, f"{t}: a shape takes one emitter, got {len(emitters)}")
@@ -555,6 +584,28 @@ class _Builder:
             if bitmap >= 0:
                 self.fail(em, "area: textured radiance is not supported")
             self.add_native(em, "emitter", "area", param, shape, [])
+
+    def mesh_attributes(self, node, key, t, bsdf, shape, mesh) -> None:
+        """Register a mesh's vertex_color / face_color (keys `<shape>.vertex_color`, flat as
+        Mitsuba's, differentiable) and check that it has those its BSDF reads."""
+        have = {} if mesh is None else mesh.attributes
+        for which, name in enumerate(MESH_ATTRIBUTES):
+            values = have.get(name)
+            if values is None:
+                continue
+            pkey = (id(node), name)
+            if pkey not in self.attribute_params:  # once per shape, shared by instances
+                self.attribute_params[pkey] = self.add_param(f"{key}.{name}", values.reshape(-1))
+            if values.shape[1] in (1, 3):
+                self.native.set_mesh_attribute(shape, which, self.attribute_params[pkey], values.shape[1])
+        for name in sorted(self.attributes_of_bsdf.get(bsdf, ())):
+            if name not in have:
+                self.fail(node, f"{t}: its BSDF reads the mesh attribute '{name}', which this shape "
+                                f"does not have (PLY colours r, g, b or red, green, blue give "
+                                f"vertex_color or face_color)")
+            if have[name].shape[1] not in (1, 3):
+                self.fail(node, f"{t}: mesh attribute '{name}' has {have[name].shape[1]} channels; "
+                                f"a BSDF input needs 1 or 3 (Mitsuba: 'requested but had size 4')")
 
     def cylinder_frame(self, node, to_world: np.ndarray):
         """Mitsuba's cylinder: to_world @ translate(p0) @ to_frame(Frame(unit(p1 - p0))) @

@@ -74,6 +74,8 @@ class Mesh:
     normals: Optional[np.ndarray] = None
     uvs: Optional[np.ndarray] = None
     computed_normals: bool = False
+    #: Mitsuba's mesh attributes ("vertex_color": (N, C), "face_color": (M, C), float32).
+    attributes: dict = None
 
     def __post_init__(self) -> None:
         self.positions = _as_array(self.positions, np.float32, 3, "positions")
@@ -90,6 +92,7 @@ class Mesh:
             )
         if self.normals is None:
             self.computed_normals = False
+        self.attributes = dict(self.attributes or {})
 
     # -- sizes ---------------------------------------------------------------------------
 
@@ -181,6 +184,7 @@ class Mesh:
             normals=normals,
             uvs=None if self.uvs is None else self.uvs.copy(),
             computed_normals=self.computed_normals,
+            attributes=self.attributes,
         )
 
     def flipped(self) -> "Mesh":
@@ -200,12 +204,13 @@ class Mesh:
             normals=None if self.normals is None else -self.normals,
             uvs=None if self.uvs is None else self.uvs.copy(),
             computed_normals=self.computed_normals,
+            attributes=self.attributes,
         )
 
     def without_normals(self) -> "Mesh":
         """This mesh with ``normals=None`` (Mitsuba's ``face_normals=true``)."""
         return Mesh(self.positions.copy(), self.faces.copy(), None,
-                    None if self.uvs is None else self.uvs.copy())
+                    None if self.uvs is None else self.uvs.copy(), attributes=self.attributes)
 
 
 def _transform_points_like_mitsuba(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
@@ -639,6 +644,8 @@ def _assemble_obj(path: Path, counts, resolved, positions, texcoords, normals,
 # Texture coordinate property pairs, in the order Mitsuba 3.9 looks for them.
 # ("texture_s", "texture_t") is deliberately absent: Mitsuba 3.9.1 ignores it.
 PLY_UV_NAMES = (("u", "v"), ("texture_u", "texture_v"), ("s", "t"))
+# Colour property names of vertices and faces (Mitsuba's vertex_color / face_color).
+PLY_COLOR_NAMES = (("r", "g", "b"), ("red", "green", "blue"))
 # Face index list names, in the order Mitsuba looks for them.
 PLY_FACE_LIST_NAMES = ("vertex_index", "vertex_indices")
 
@@ -691,10 +698,22 @@ def load_ply(path, face_normals: bool = False, flip_tex_coords: bool = False) ->
             break
     if uvs is not None and flip_tex_coords:
         uvs[:, 1] = np.float32(1.0) - uvs[:, 1]
-    faces = _ply_faces(path, ply, positions.shape[0])
+    faces, face_of_triangle = _ply_faces(path, ply, positions.shape[0])
     if not np.all(np.isfinite(positions)):
         raise MeshError(f"{path}: vertex positions contain non-finite values")
-    return _finish(path, positions, faces, normals, uvs, face_normals)
+    mesh = _finish(path, positions, faces, normals, uvs, face_normals)
+    # Colours as Mitsuba's mesh attributes: (r, g, b) or (red, green, blue), plus alpha, as
+    # stored (8-bit values are not normalized; Mitsuba warns and keeps them).
+    for element, attribute in (("vertex", "vertex_color"), ("face", "face_color")):
+        for names in PLY_COLOR_NAMES:
+            cols = _ply_columns(path, ply[element], names)
+            if cols is not None:
+                alpha = _ply_columns(path, ply[element], ("alpha",))
+                if alpha is not None:
+                    cols = np.hstack([cols, alpha])
+                mesh.attributes[attribute] = cols if element == "vertex" else cols[face_of_triangle]
+                break
+    return mesh
 
 
 def _read_plyfile(path: Path):
@@ -765,8 +784,9 @@ def _ply_columns(path: Path, element, names: Sequence[str], required: bool = Fal
     return np.stack(columns, axis=1)
 
 
-def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
-    """Face index lists of a PLY file -> int32 triangles (M, 3), fan-triangulated."""
+def _ply_faces(path: Path, ply, n_vertices: int):
+    """Face index lists of a PLY file -> int32 triangles (M, 3), fan-triangulated, and the
+    index of the face each triangle comes from."""
     face = ply["face"]
     present = {p.name for p in face.properties}
     name = next((n for n in PLY_FACE_LIST_NAMES if n in present), None)
@@ -774,6 +794,7 @@ def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
         raise MeshError(f"{path}: element 'face' has no 'vertex_index' or 'vertex_indices' "
                         f"list (properties: {sorted(present)})")
     lists = face[name]
+    face_of_triangle = np.arange(len(lists))
     if lists.dtype != object and lists.ndim == 2:  # memory-mapped triangles
         tris = np.asarray(lists, dtype=np.int64)
     elif lists.dtype != object:
@@ -788,11 +809,12 @@ def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
         flat = (np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])
                 if len(lists) else np.zeros(0, dtype=np.int64))
         tris = flat[_fan_triangles(counts)] if len(lists) else np.zeros((0, 3), np.int64)
+        face_of_triangle = np.repeat(face_of_triangle, counts - 2)
     if tris.size and (tris.min() < 0 or tris.max() >= n_vertices):
         bad = int(np.flatnonzero(np.any((tris < 0) | (tris >= n_vertices), axis=1))[0])
         raise MeshError(f"{path}: triangle {bad} has vertex indices {tris[bad].tolist()}, "
                         f"expected indices in [0, {n_vertices})")
-    return tris.astype(np.int32)
+    return tris.astype(np.int32), face_of_triangle
 
 
 # ---------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ Writes into tests/references/shapes/:
 - ``serialized_mitsuba.json``: what Mitsuba 3 loads from them (``mi.traverse`` arrays) for each
   shape_index, with and without ``face_normals``, under the identity and under ``TO_WORLD``;
 - ``objects.serialized`` and ``stripes.exr``: the mesh file and texture of analytic_shapes.xml;
+  ``vertex_colors.ply`` and ``face_colors.ply``: the meshes of mesh_attributes.xml;
 - ``analytic_hits.json``: rays at disks and cylinders (HIT_CASES) and at instances.xml, and
   Mitsuba's hits;
 - ``<name>.exr`` and ``renders.json``: converged renders of the scenes in this folder (64 x 48,
@@ -57,6 +58,7 @@ MESHES = [
 RENDERS = {
     "analytic_shapes": ("analytic_shapes.xml", 65536),
     "cylinder_light": ("cylinder_light.xml", 65536),
+    "mesh_attributes": ("mesh_attributes.xml", 65536),
 }
 
 
@@ -112,6 +114,31 @@ def uv_sphere(n_theta=10, n_phi=16):
     return positions, np.array(faces)
 
 
+def write_color_ply(path, colors, per_face):
+    """A 4 x 4 vertex grid on [-1, 1]^2 (18 triangles) with float colours per vertex or face."""
+    g = np.linspace(-1, 1, 4)
+    positions = np.array([[x, y, 0.0] for y in g for x in g])
+    faces = []
+    for j in range(3):
+        for i in range(3):
+            a = 4 * j + i
+            faces += [[a, a + 1, a + 5], [a, a + 5, a + 4]]
+    lines = ["ply", "format ascii 1.0", "element vertex 16", "property float x", "property float y",
+             "property float z"]
+    if not per_face:
+        lines += ["property float red", "property float green", "property float blue"]
+    lines += ["element face %d" % len(faces), "property list uchar int vertex_indices"]
+    if per_face:
+        lines += ["property float r", "property float g", "property float b"]
+    lines.append("end_header")
+    for k, p in enumerate(positions):
+        lines.append(" ".join("%g" % v for v in list(p) + ([] if per_face else list(colors[k]))))
+    for k, f in enumerate(faces):
+        lines.append("3 %d %d %d" % tuple(f) + ("".join(" %g" % v for v in colors[k]) if per_face else ""))
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
 def make_scene_files():
     """objects.serialized (a cube with normals and uvs, a sphere without) and stripes.exr."""
     import make_references as mr
@@ -126,6 +153,9 @@ def make_scene_files():
     img[..., 1] = 0.2 + 0.6 * u[:, None]                        # a ramp along v (rows)
     img[..., 2] = 0.3
     mr.write_exr(os.path.join(OUT, "stripes.exr"), img)
+    rng = np.random.default_rng(5)
+    write_color_ply(os.path.join(OUT, "vertex_colors.ply"), np.round(rng.uniform(0.05, 0.95, (16, 3)), 3), False)
+    write_color_ply(os.path.join(OUT, "face_colors.ply"), np.round(rng.uniform(0.05, 0.95, (18, 3)), 3), True)
 
 
 # Analytic shapes whose ray hits are recorded: (type, parameters; to_world as (translate,
@@ -195,11 +225,14 @@ def make_hits(mi, n=120):
     print("wrote analytic_hits.json")
 
 
-def make_renders(spp_scale):
+def make_renders(spp_scale, only=None):
     import make_references as mr
     import mitsuba_ref
-    meta = {}
+    path = os.path.join(OUT, "renders.json")
+    meta = json.load(open(path)) if os.path.exists(path) else {}
     for name, (xml, spp) in RENDERS.items():
+        if only and name not in only:
+            continue
         spp = int(round(spp * spp_scale / 2)) * 2
         scene = mitsuba_ref.load_scene(os.path.join(OUT, xml), None, None)
         print("[%s] %d spp ..." % (name, spp), flush=True)
@@ -221,6 +254,7 @@ def main():
     ap.add_argument("--spp-scale", type=float, default=1.0)
     ap.add_argument("--no-render", action="store_true")
     ap.add_argument("--hits-only", action="store_true", help="only the serialized and hit files")
+    ap.add_argument("--only", nargs="*", default=None, help="names of the renders to (re)make")
     args = ap.parse_args()
     import mitsuba as mi
     mi.set_variant("scalar_rgb")
@@ -231,7 +265,7 @@ def main():
         return
     make_scene_files()
     if not args.no_render:
-        make_renders(args.spp_scale)
+        make_renders(args.spp_scale, args.only)
     print("total %.1f s" % (time.time() - t0))
 
 
