@@ -738,3 +738,26 @@ def test_serialized_shape_index_range_and_bad_indices(tmp_path):
         load_serialized(path, 1)
     with pytest.raises(MeshError, match="not found"):
         load_serialized(tmp_path / "missing.serialized")
+
+
+def test_ply_colors_become_mesh_attributes_like_mitsuba(tmp_path):
+    """Mitsuba 3.9.1: vertex (red, green, blue) or (r, g, b) -> vertex_color, face colours ->
+    face_color, alpha adds a channel, 8-bit values are kept as stored (255, not 1)."""
+    vertex = np.empty(6, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"),
+                                ("blue", "u1"), ("alpha", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = PLY_POSITIONS.T
+    vertex["red"], vertex["green"], vertex["blue"], vertex["alpha"] = 255, 0, 128, 7
+    face = np.empty(2, dtype=[("vertex_indices", "O"), ("r", "f4"), ("g", "f4"), ("b", "f4")])
+    face["vertex_indices"] = [np.array([0, 1, 2, 3], np.int32), np.array([0, 3, 4], np.int32)]
+    face["r"], face["g"], face["b"] = [0.1, 0.2], [0.3, 0.4], [0.5, 0.6]
+    path = tmp_path / "c.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")]).write(str(path))
+    mesh = load_ply(path)
+    assert np.array_equal(mesh.attributes["vertex_color"], np.tile([255, 0, 128, 7], (6, 1)))
+    # the quad's two triangles share its colour (polygons are fan-triangulated)
+    np.testing.assert_allclose(mesh.attributes["face_color"],
+                               [[0.1, 0.3, 0.5], [0.1, 0.3, 0.5], [0.2, 0.4, 0.6]], rtol=1e-6)
+    moved = mesh.transformed(np.diag([2.0, 1, 1, 1]))
+    assert moved.attributes["face_color"] is mesh.attributes["face_color"]
+    assert "vertex_color" not in load_ply(write_ply(tmp_path / "plain.ply", TRIS)).attributes

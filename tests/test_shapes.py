@@ -212,6 +212,10 @@ def test09_mesh_attribute_keys_and_errors(colored, tmp_path):
     # Mitsuba's keys and layout: flat, 3 values per vertex (16) or per triangle (18)
     assert scene.params["vq.vertex_color"].shape == (48,)
     assert scene.params["fq.face_color"].shape == (54,)
+    (tmp_path / "rgba.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float r\nproperty float g\nproperty float b\nproperty float alpha\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 1\n1 0 0 0 1 0 1\n0 1 0 0 0 1 1\n3 0 1 2\n")
     for node, pattern in [
         ({"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}},
          "does not have"),
@@ -221,6 +225,8 @@ def test09_mesh_attribute_keys_and_errors(colored, tmp_path):
          "supported as a diffuse reflectance"),
         ({"type": "ply", "filename": "v.ply", "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_foo"}}},
          "must be one of vertex_color, face_color"),
+        ({"type": "ply", "filename": "rgba.ply", "bsdf": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}},
+         "has 4 channels"),
     ]:
         with pytest.raises(tr.SceneError, match=pattern):
             tr.load_dict({"type": "scene", "s": node}, base_dir=tmp_path)
