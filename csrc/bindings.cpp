@@ -35,10 +35,10 @@ Vec3 vec3(const std::vector<float> &v, const char *what) {
 TextureRef texture_ref(const py::object &o) {
     TextureRef t;
     if (o.is_none()) return t;
-    auto values = o.cast<std::vector<int>>();  // (param, bitmap) or (param, bitmap, attribute)
-    if (values.size() != 2 && values.size() != 3) fail("a texture is (param, bitmap[, attribute])");
+    auto values = o.cast<std::vector<int>>();  // (param, texture) or (param, bitmap, attribute)
+    if (values.size() != 2 && values.size() != 3) fail("a texture is (param, texture[, attribute])");
     t.param = values[0];
-    t.bitmap = values[1];
+    t.texture = values[1];
     if (values.size() == 3) t.attribute = values[2];
     return t;
 }
@@ -88,9 +88,14 @@ Camera make_camera(const py::dict &d) {
     if (filter == "box") cam.filter.type = FilterType::Box;
     else if (filter == "tent") cam.filter.type = FilterType::Tent;
     else if (filter == "gaussian") cam.filter.type = FilterType::Gaussian;
+    else if (filter == "mitchell") cam.filter.type = FilterType::Mitchell;
+    else if (filter == "lanczos") cam.filter.type = FilterType::Lanczos;
     else fail("unknown filter '" + filter + "'");
     cam.filter.radius = get<float>(d, "filter_radius");
     cam.filter.stddev = get<float>(d, "filter_stddev");
+    if (d.contains("filter_b")) cam.filter.b = get<float>(d, "filter_b");
+    if (d.contains("filter_c")) cam.filter.c = get<float>(d, "filter_c");
+    if (d.contains("filter_lobes")) cam.filter.lobes = get<int>(d, "filter_lobes");
     if (!(cam.filter.radius > 0.f) || cam.filter.border() > Filter::MaxBorder)
         fail("filter radius must lie in (0, " + std::to_string(Filter::MaxBorder) + ".5] pixels, got " +
              std::to_string(cam.filter.radius));
@@ -609,8 +614,8 @@ int add_bsdf(Scene &scene, const std::string &type, bool twosided, const py::obj
     b.nonlinear = nonlinear;
     auto check = [&](const TextureRef &t, bool needed, const char *what) {
         if (needed && !t.valid()) fail(type + " needs '" + what + "'");
-        if (t.param >= int(scene.params.size()) || t.bitmap >= int(scene.bitmaps.size()))
-            fail(type + ": '" + what + "' refers to an unknown parameter or bitmap");
+        if (t.param >= int(scene.params.size()) || t.texture >= int(scene.textures.size()))
+            fail(type + ": '" + what + "' refers to an unknown parameter or texture");
     };
     bool diffuse_input = b.type == BSDFType::Diffuse || b.type == BSDFType::RoughPlastic;
     check(b.reflectance, diffuse_input, "reflectance");
@@ -650,8 +655,19 @@ int add_emitter(Scene &scene, const std::string &type, int param, int shape,
     return int(scene.emitters.size()) - 1;
 }
 
+/// A texture's `to_uv` (a 2 x 3 affine map of uv, or empty for the identity).
+void set_to_uv(Texture &tex, const std::vector<std::vector<float>> &to_uv) {
+    if (to_uv.empty()) return;
+    if (to_uv.size() != 2 || to_uv[0].size() != 3 || to_uv[1].size() != 3)
+        fail("to_uv must be a 2 x 3 matrix");
+    for (int r = 0; r < 2; ++r)
+        for (int c = 0; c < 3; ++c) tex.to_uv[r][c] = to_uv[r][c];
+    tex.has_to_uv = true;
+}
+
 int add_bitmap(Scene &scene, int param, int width, int height, int channels,
-               const std::string &wrap, bool nearest) {
+               const std::string &wrap, bool nearest,
+               const std::vector<std::vector<float>> &to_uv) {
     if (param < 0 || param >= int(scene.params.size())) fail("bitmap parameter out of range");
     if (channels != 1 && channels != 3) fail("bitmaps must have 1 or 3 channels");
     if (int64_t(width) * height * channels != scene.params[param].numel)
@@ -666,8 +682,25 @@ int add_bitmap(Scene &scene, int param, int width, int height, int channels,
     else if (wrap == "mirror") bm.wrap = WrapMode::Mirror;
     else if (wrap == "clamp") bm.wrap = WrapMode::Clamp;
     else fail("unknown wrap_mode '" + wrap + "' (supported: repeat, mirror, clamp)");
-    scene.bitmaps.push_back(bm);
-    return int(scene.bitmaps.size()) - 1;
+    Texture tex;
+    tex.type = TextureType::Bitmap;
+    tex.bitmap = bm;
+    set_to_uv(tex, to_uv);
+    scene.textures.push_back(tex);
+    return int(scene.textures.size()) - 1;
+}
+
+int add_checkerboard(Scene &scene, int color0, int color1,
+                     const std::vector<std::vector<float>> &to_uv) {
+    for (int p : {color0, color1})
+        if (p < 0 || p >= int(scene.params.size())) fail("checkerboard parameter out of range");
+    Texture tex;
+    tex.type = TextureType::Checkerboard;
+    tex.checkerboard.color0 = color0;
+    tex.checkerboard.color1 = color1;
+    set_to_uv(tex, to_uv);
+    scene.textures.push_back(tex);
+    return int(scene.textures.size()) - 1;
 }
 
 }  // namespace
@@ -681,7 +714,11 @@ PYBIND11_MODULE(_C, m) {
                  s.params.push_back({name, numel});
                  return int(s.params.size()) - 1;
              })
-        .def("add_bitmap", &add_bitmap)
+        .def("add_bitmap", &add_bitmap, py::arg("param"), py::arg("width"), py::arg("height"),
+             py::arg("channels"), py::arg("wrap"), py::arg("nearest"),
+             py::arg("to_uv") = std::vector<std::vector<float>>())
+        .def("add_checkerboard", &add_checkerboard, py::arg("color0"), py::arg("color1"),
+             py::arg("to_uv") = std::vector<std::vector<float>>())
         .def("add_bsdf", &add_bsdf, py::arg("type"), py::arg("twosided"), py::arg("reflectance"),
              py::arg("specular_reflectance"), py::arg("specular_transmittance"), py::arg("alpha"),
              py::arg("distribution"), py::arg("eta"), py::arg("nonlinear"))

@@ -109,7 +109,7 @@ struct BSDFQuery {
                                           shape.attribute_channels[t.attribute], v,
                                           si.tri - shape.tri_begin, si.b1, si.b2, ctx.params);
         }
-        return eval_texture<S>(t, ctx.bitmaps, ctx.params, si.uv);
+        return eval_texture<S>(t, ctx.textures, ctx.params, si.uv);
     }
     /// The roughness parameter, with its derivative (R = real_t<S>) or detached (float, read
     /// straight from the values so that autodiff types record nothing).

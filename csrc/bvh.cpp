@@ -5,15 +5,16 @@
 // since four are tested at once (Embree's block size), plus one pack per analytic shape
 // (sphere, disk, cylinder).
 //
-// Collapse: each binary inner node becomes a BVHNode4 whose children are found by repeatedly
-// opening the inner child of largest surface area until there are four (Wald et al. 2008,
-// "Getting rid of packets"). A BVHNode4 (128 bytes) keeps
-// the four child boxes in structure-of-arrays form, lo[axis][child] and hi[axis][child], so
-// that one SSE slab test covers all four, and a 32-bit reference per child:
+// Collapse: each binary inner node becomes a BVHNode whose children are found by repeatedly
+// opening the inner child of largest surface area until there are BVHWidth of them (Wald et
+// al. 2008, "Getting rid of packets"; Embree's BVH8 on AVX machines). A BVHNode (256 bytes
+// when 8-wide, 128 when 4-wide) keeps the child boxes in structure-of-arrays form,
+// lo[axis][child] and hi[axis][child], so that one AVX (SSE) slab test covers all of them,
+// and a 32-bit reference per child:
 //   - an inner node: its index in nodes_ (the top bit clear);
 //   - a leaf: LeafBit | first << 3 | (count - 1), a run of `count` (at most 8) PrimPack4s
 //     starting at packs_[first];
-//   - nothing (fewer than four children): EmptyChild, with an empty box no ray enters.
+//   - nothing (fewer than BVHWidth children): EmptyChild, with an empty box no ray enters.
 // A PrimPack4 holds four consecutive primitives of a leaf: the vertices of its triangles,
 // again per lane, for the 4-wide watertight test, and the ids; analytic lanes are tested one
 // at a time (in double precision).
@@ -24,6 +25,8 @@
 // Any-hit (shadow) queries do not order children and return at the first hit.
 
 #include "bvh.h"
+
+#include <immintrin.h>
 
 #include <algorithm>
 #include <stdexcept>
@@ -42,9 +45,9 @@ struct BinaryNode {
 
 constexpr uint32_t LeafBit = 0x80000000u;
 constexpr uint32_t EmptyChild = 0xffffffffu;
-/// Deepest 4-wide tree the traversal stack allows (at most three pushes per level).
+/// Deepest tree the traversal stack allows (at most BVHWidth - 1 pushes per level).
 constexpr int MaxDepth = 64;
-constexpr int StackSize = 3 * MaxDepth + 1;
+constexpr int StackSize = (BVHWidth - 1) * MaxDepth + 1;
 /// Box exits are widened by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
 constexpr float BoxWiden = 1.0000004f;
 
@@ -101,7 +104,7 @@ Bounds analytic_bounds(const Shape &s) {
 
 constexpr int Bins = 16;
 constexpr int MaxLeafSize = 8;
-/// Build costs: a binary node (half a 4-wide node) and the test of a pack of four triangles.
+/// Build costs: a binary node and the test of a pack of four triangles.
 constexpr float TraversalCost = 1.f, PackCost = 4.f;
 /// Tests for n primitives of which `analytic` are analytic shapes, in packs: triangles go four at a
 /// time, while each analytic shape costs about a pack (a double precision test of its own).
@@ -212,12 +215,12 @@ double binary_area(const BinaryNode &n) {
     return 2.0 * (double(e.x) * e.y + double(e.y) * e.z + double(e.z) * e.x);
 }
 
-/// Turns the binary tree into 4-wide nodes and its leaves into packs of four primitives.
+/// Turns the binary tree into BVHWidth-wide nodes and its leaves into packs of four primitives.
 struct Collapser {
     const std::vector<BinaryNode> &bin;
     const std::vector<PrimInfo> &prims;
     const Geometry &geometry;
-    std::vector<BVHNode4> &nodes;
+    std::vector<BVHNode> &nodes;
     std::vector<PrimPack4> &packs;
 
     uint32_t leaf(const BinaryNode &n) {
@@ -246,13 +249,13 @@ struct Collapser {
         return LeafBit | first << 3 | (count - 1);
     }
 
-    /// The 4-wide node for binary inner node `b` at depth `depth`; returns its index.
+    /// The node for binary inner node `b` at depth `depth`; returns its index.
     uint32_t inner(uint32_t b, int depth) {
         if (depth >= MaxDepth) throw std::runtime_error("BVH: the tree is deeper than 64 levels");
-        // Open the inner child of largest area until there are four children.
-        uint32_t kids[4] = {b + 1, bin[b].offset};
+        // Open the inner child of largest area until there are BVHWidth children.
+        uint32_t kids[BVHWidth] = {b + 1, bin[b].offset};
         int n = 2;
-        while (n < 4) {
+        while (n < BVHWidth) {
             int best = -1;
             double best_area = -1.0;
             for (int i = 0; i < n; ++i) {
@@ -269,11 +272,11 @@ struct Collapser {
         return node(kids, n, depth);
     }
 
-    /// A 4-wide node over the binary nodes kids[0, n); returns its index.
+    /// A node over the binary nodes kids[0, n); returns its index.
     uint32_t node(const uint32_t *kids, int n, int depth) {
         uint32_t index = uint32_t(nodes.size());
         nodes.emplace_back();
-        for (int c = 0; c < 4; ++c) {
+        for (int c = 0; c < BVHWidth; ++c) {
             Vec3 lo{Infinity, Infinity, Infinity}, hi{-Infinity, -Infinity, -Infinity};
             uint32_t ref = EmptyChild;
             if (c < n) {
@@ -282,7 +285,7 @@ struct Collapser {
                 hi = kid.hi;
                 ref = kid.count ? leaf(kid) : inner(kids[c], depth + 1);
             }
-            BVHNode4 &node = nodes[index];  // (inner() may have moved the vector)
+            BVHNode &node = nodes[index];  // (inner() may have moved the vector)
             for (int axis = 0; axis < 3; ++axis) {
                 node.lo[axis][c] = lo[axis];
                 node.hi[axis][c] = hi[axis];
@@ -322,7 +325,7 @@ void BVH::build(const Geometry &geometry) {
     for (const BinaryNode &node : bin)
         sah_cost_ += binary_area(node) / root * (node.count ? double(node.count) : 1.0);
 
-    // Collapse it; a root that is a leaf becomes the only child of a 4-wide root.
+    // Collapse it; a root that is a leaf becomes the only child of the root node.
     Collapser collapser{bin, prims, geometry, nodes_, packs_};
     const uint32_t root_kid = 0;
     if (bin[0].count == 0) {
@@ -332,21 +335,69 @@ void BVH::build(const Geometry &geometry) {
     }
 }
 
+/// The slab test of a ray against all child boxes of a node at once (Williams et al. 2005):
+/// the per-ray constants splatted over the lanes, and the test returning the mask of children
+/// entered before `tmax` with their entry distances. A NaN (0 * inf, the origin on a slab plane
+/// of a parallel ray) is dropped by max/min, which return their second operand.
+#if defined(__AVX__)
+struct NodeTest {
+    __m256 o[3], inv_d[3], tmin;
+    bool neg[3];
+    NodeTest(const Ray &ray) : tmin(_mm256_set1_ps(ray.tmin)) {
+        for (int axis = 0; axis < 3; ++axis) {
+            float inv = 1.f / ray.d[axis];
+            o[axis] = _mm256_set1_ps(ray.o[axis]);
+            inv_d[axis] = _mm256_set1_ps(inv);
+            neg[axis] = std::signbit(inv);
+        }
+    }
+    int operator()(const BVHNode &node, float tmax, float t_entry[BVHWidth]) const {
+        __m256 t0 = tmin, t1 = _mm256_set1_ps(tmax);
+        for (int axis = 0; axis < 3; ++axis) {
+            __m256 lo = _mm256_load_ps(node.lo[axis]), hi = _mm256_load_ps(node.hi[axis]);
+            __m256 t_near = _mm256_mul_ps(_mm256_sub_ps(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
+            __m256 t_far = _mm256_mul_ps(_mm256_sub_ps(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
+            t0 = _mm256_max_ps(t_near, t0);
+            t1 = _mm256_min_ps(t_far, t1);
+        }
+        _mm256_storeu_ps(t_entry, t0);
+        return _mm256_movemask_ps(_mm256_cmp_ps(t0, _mm256_mul_ps(t1, _mm256_set1_ps(BoxWiden)), _CMP_LE_OQ));
+    }
+};
+#else
+struct NodeTest {
+    __m128 o[3], inv_d[3], tmin;
+    bool neg[3];
+    NodeTest(const Ray &ray) : tmin(_mm_set1_ps(ray.tmin)) {
+        for (int axis = 0; axis < 3; ++axis) {
+            float inv = 1.f / ray.d[axis];
+            o[axis] = _mm_set1_ps(ray.o[axis]);
+            inv_d[axis] = _mm_set1_ps(inv);
+            neg[axis] = std::signbit(inv);
+        }
+    }
+    int operator()(const BVHNode &node, float tmax, float t_entry[BVHWidth]) const {
+        __m128 t0 = tmin, t1 = _mm_set1_ps(tmax);
+        for (int axis = 0; axis < 3; ++axis) {
+            __m128 lo = _mm_load_ps(node.lo[axis]), hi = _mm_load_ps(node.hi[axis]);
+            __m128 t_near = _mm_mul_ps(_mm_sub_ps(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
+            __m128 t_far = _mm_mul_ps(_mm_sub_ps(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
+            t0 = _mm_max_ps(t_near, t0);
+            t1 = _mm_min_ps(t_far, t1);
+        }
+        _mm_storeu_ps(t_entry, t0);
+        return _mm_movemask_ps(_mm_cmple_ps(t0, _mm_mul_ps(t1, _mm_set1_ps(BoxWiden))));
+    }
+};
+#endif
+
 template <bool AnyHit>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (nodes_.empty()) return false;
     // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
     if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
     RayPrecomp4 pc(ray);
-    __m128 o4[3], inv_d4[3];
-    bool neg[3];
-    for (int axis = 0; axis < 3; ++axis) {
-        float inv_d = 1.f / ray.d[axis];
-        o4[axis] = _mm_set1_ps(ray.o[axis]);
-        inv_d4[axis] = _mm_set1_ps(inv_d);
-        neg[axis] = std::signbit(inv_d);
-    }
-    const __m128 tmin4 = _mm_set1_ps(ray.tmin), widen = _mm_set1_ps(BoxWiden);
+    const NodeTest node_test(ray);
     float tmax = ray.tmax;
     bool found = false;
     struct Entry {
@@ -357,21 +408,11 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
     uint32_t ref = 0;
     while (true) {
         if (!(ref & LeafBit)) {
-            // Slab test of the four child boxes. A NaN (0 * inf, the origin on a slab plane
-            // of a parallel ray) is dropped by max/min, which return their second operand.
-            const BVHNode4 &node = nodes_[ref];
-            __m128 t0 = tmin4, t1 = _mm_set1_ps(tmax);
-            for (int axis = 0; axis < 3; ++axis) {
-                __m128 lo = _mm_load_ps(node.lo[axis]), hi = _mm_load_ps(node.hi[axis]);
-                __m128 t_near = _mm_mul_ps(_mm_sub_ps(neg[axis] ? hi : lo, o4[axis]), inv_d4[axis]);
-                __m128 t_far = _mm_mul_ps(_mm_sub_ps(neg[axis] ? lo : hi, o4[axis]), inv_d4[axis]);
-                t0 = _mm_max_ps(t_near, t0);
-                t1 = _mm_min_ps(t_far, t1);
-            }
-            int mask = _mm_movemask_ps(_mm_cmple_ps(t0, _mm_mul_ps(t1, widen)));
+            // Test the ray against the node's child boxes.
+            const BVHNode &node = nodes_[ref];
+            alignas(32) float t_entry[BVHWidth];
+            int mask = node_test(node, tmax, t_entry);
             if (mask) {
-                alignas(16) float t_entry[4];
-                _mm_store_ps(t_entry, t0);
                 // Start loading the hit children now: traversal is bound by memory latency.
                 for (int m = mask; m; m &= m - 1) {
                     uint32_t child = node.child[__builtin_ctz(m)];
@@ -381,6 +422,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                     _mm_prefetch(p, _MM_HINT_T0);
                     _mm_prefetch(p + 64, _MM_HINT_T0);
                     _mm_prefetch(p + 128, _MM_HINT_T0);
+                    if (BVHWidth == 8) _mm_prefetch(p + 192, _MM_HINT_T0);
                 }
                 int c = __builtin_ctz(mask);
                 mask &= mask - 1;
@@ -398,7 +440,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                     continue;
                 }
                 // Several children: order them by entry distance, farthest first.
-                Entry hits[4] = {{node.child[c], t_entry[c]}};
+                Entry hits[BVHWidth] = {{node.child[c], t_entry[c]}};
                 int n = 1;
                 for (; mask; mask &= mask - 1, ++n) {
                     c = __builtin_ctz(mask);

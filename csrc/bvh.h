@@ -1,6 +1,8 @@
-// Bounding volume hierarchy over all primitives (triangles and analytic shapes), built once at load
-// with the binned surface area heuristic, collapsed into a 4-wide tree and traversed with SSE
-// (four child boxes and four triangles per test). The layout is described in bvh.cpp.
+// Bounding volume hierarchy over all primitives (triangles and analytic
+// shapes: spheres, disks, cylinders), built once at
+// load with the binned surface area heuristic, collapsed into an 8-wide tree when the build targets
+// AVX (one slab test of eight child boxes), a 4-wide one with SSE otherwise, and leaves of
+// four-triangle packs (one SSE test). The layout is described in bvh.cpp.
 #pragma once
 
 #include <cstdint>
@@ -10,14 +12,21 @@
 
 namespace rbpt {
 
-/// A 4-wide node: the boxes of its four children side by side (lo[axis][child]) and a
-/// reference per child (an inner node, a leaf or nothing; see bvh.cpp).
-struct alignas(64) BVHNode4 {
-    float lo[3][4];
-    float hi[3][4];
-    uint32_t child[4];
+/// Children per node: eight boxes fill an AVX register, four an SSE one.
+#if defined(__AVX__)
+constexpr int BVHWidth = 8;
+#else
+constexpr int BVHWidth = 4;
+#endif
+
+/// A node: the boxes of its BVHWidth children side by side (lo[axis][child]) and a reference
+/// per child (an inner node, a leaf or nothing; see bvh.cpp).
+struct alignas(64) BVHNode {
+    float lo[3][BVHWidth];
+    float hi[3][BVHWidth];
+    uint32_t child[BVHWidth];
 };
-static_assert(sizeof(BVHNode4) == 128, "BVHNode4 should stay two cache lines");
+static_assert(sizeof(BVHNode) == 32 * BVHWidth, "a node should fill whole cache lines");
 
 /// Up to four primitives of a leaf: triangle vertices for the SSE test, the primitive ids,
 /// and which lanes hold triangles and analytic shapes (spheres, disks, cylinders).
@@ -38,7 +47,7 @@ public:
     /// Whether anything blocks `ray` in (ray.tmin, ray.tmax); stops at the first hit.
     bool occluded(const Ray &ray) const;
 
-    /// Number of 4-wide nodes.
+    /// Number of BVHWidth-wide nodes.
     size_t node_count() const { return nodes_.size(); }
     /// SAH cost of the binary tree before collapsing (traversal 1, intersection 1), for tests.
     double sah_cost() const { return sah_cost_; }
@@ -50,7 +59,7 @@ private:
     bool intersect_others(const Ray &ray, const PrimPack4 &pack, float tmax, Hit *hit) const;
 
     const Geometry *geometry_ = nullptr;
-    std::vector<BVHNode4> nodes_;
+    std::vector<BVHNode> nodes_;
     std::vector<PrimPack4> packs_;  ///< leaf contents, each leaf a run of packs
     double sah_cost_ = 0.0;
 };

@@ -1,5 +1,7 @@
 #include "camera.h"
 
+#include <cmath>
+
 namespace rbpt {
 
 float Filter::eval(float x) const {
@@ -25,6 +27,34 @@ void Filter::eval_row(float x0, int n, float *w) const {
             }
             return;
         }
+        case FilterType::Mitchell:
+            for (int k = 0; k < n; ++k) {
+                float x = std::abs(x0 + float(k)), x2 = x * x, x3 = x2 * x;
+                float f;
+                if (x < 1.f)
+                    f = (12.f - 9.f * b - 6.f * c) * x3 + (-18.f + 12.f * b + 6.f * c) * x2 +
+                        (6.f - 2.f * b);
+                else if (x < 2.f)
+                    f = (-b - 6.f * c) * x3 + (6.f * b + 30.f * c) * x2 +
+                        (-12.f * b - 48.f * c) * x + (8.f * b + 24.f * c);
+                else
+                    f = 0.f;
+                w[k] = f * (1.f / 6.f);
+            }
+            return;
+        case FilterType::Lanczos:
+            for (int k = 0; k < n; ++k) {
+                float x = std::abs(x0 + float(k));
+                if (x >= radius) {
+                    w[k] = 0.f;
+                } else if (x < 1e-4f) {
+                    w[k] = 1.f;
+                } else {
+                    float x1 = float(M_PI) * x, x2 = x1 / float(lobes);
+                    w[k] = std::sin(x1) * std::sin(x2) / (x1 * x2);
+                }
+            }
+            return;
     }
 }
 

@@ -10,15 +10,20 @@
 
 namespace rbpt {
 
-enum class FilterType { Box, Tent, Gaussian };
+enum class FilterType { Box, Tent, Gaussian, Mitchell, Lanczos };
 
-/// A separable reconstruction filter f(x) f(y) of radius `radius` (in pixels).
+/// A separable reconstruction filter f(x) f(y) of radius `radius` (in pixels). Mitchell-
+/// Netravali (also Catmull-Rom: B = 0, C = 1/2) and Lanczos have negative lobes: weights may
+/// be negative, and a pixel is still sum w L / sum w, as in Mitsuba.
 struct Filter {
     FilterType type = FilterType::Box;
     float radius = 0.5f;
     float stddev = 0.5f;
+    float b = 1.f / 3.f, c = 1.f / 3.f;  ///< Mitchell-Netravali's B and C (radius 2)
+    int lobes = 3;                        ///< Lanczos: sinc(x) sinc(x / lobes), radius = lobes
 
-    /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias).
+    /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias;
+    /// mitchell: the cubic of Mitchell and Netravali 1988 in |x| < 2; lanczos: windowed sinc).
     float eval(float x) const;
     /// eval() at the n offsets x0, x0 + 1, ..., x0 + n - 1 (a row of splat weights).
     void eval_row(float x0, int n, float *w) const;

@@ -24,6 +24,9 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
     R a2 = alpha * alpha;
     R result;
     if (type == MicrofacetType::Beckmann) {
+        // Beyond e^-150, D is below the cut-off below for any alpha above 1e-10 (and exp
+        // would take libm's slow underflow path).
+        if (-(xy2 / cos2) / detach_real(a2) < -150.f) return R(0.f);
         result = exp(-(xy2 / cos2) / a2) / (Pi * a2 * (cos2 * cos2));
     } else {
         R t = xy2 / a2 + cos2;
@@ -45,6 +48,8 @@ R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
     float tan2 = xy2 / (v.z * v.z);
     if (type == MicrofacetType::Beckmann) {
         R a = 1.f / (alpha * std::sqrt(tan2));
+        // Beyond a = 9, lambda < 1e-37: G1 is 1 in float and double (and exp would underflow).
+        if (detach_real(a) > 9.f) return R(1.f);
         R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
         return 1.f / (1.f + lambda);
     }
@@ -62,7 +67,7 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
 /// Sample a microfacet normal visible from wi (wi.z > 0), distributed as visible_normal_pdf.
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u);
 
-/// Inverse error function (double precision).
-double erfinv(double x);
+/// Inverse error function (single precision).
+float erfinv(float x);
 
 }  // namespace rbpt

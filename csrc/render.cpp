@@ -187,7 +187,9 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
     if (req.nonfinite) *req.nonfinite = nonfinite;
 }
 
-double safe_div(double a, double b) { return b > 0.0 ? a / b : 0.0; }
+/// a / b, or 0 where no sample reached the pixel. As Mitsuba's film, any nonzero weight sum
+/// divides, also a negative one (filters with negative lobes).
+double safe_div(double a, double b) { return b != 0.0 ? a / b : 0.0; }
 
 }  // namespace
 

@@ -1,4 +1,4 @@
-// The scene: geometry and its BVH, materials, emitters, bitmaps and the registry of
+// The scene: geometry and its BVH, materials, emitters, textures and the registry of
 // parameters, plus the per-render context that binds parameter values of a number type.
 #pragma once
 
@@ -28,7 +28,7 @@ public:
     BVH bvh;
     std::vector<BSDF> bsdfs;
     std::vector<Emitter> emitters;
-    std::vector<Bitmap> bitmaps;
+    std::vector<Texture> textures;
     std::vector<ParamInfo> params;
     int environment = -1;  ///< index of the constant emitter, if any
 
@@ -65,11 +65,11 @@ template <typename S>
 struct RenderContext {
     const Scene &scene;
     Params<S> params;
-    const Bitmap *bitmaps = nullptr;
+    const Texture *textures = nullptr;
     std::vector<BSDFState> bsdf_state;
 
     RenderContext(const Scene &scene, Params<S> params_) : scene(scene), params(std::move(params_)) {
-        bitmaps = scene.bitmaps.data();
+        textures = scene.textures.data();
         size_t n = scene.bsdfs.size();
         std::vector<float> alphas(n, 0.1f), dmeans(n, 0.5f), smeans(n, 1.f);
         std::vector<bool> derivatives(n, false);
@@ -85,8 +85,14 @@ struct RenderContext {
     }
 
 private:
+    /// Detached mean of a material input (a checkerboard's: the mean of its two colours,
+    /// as Mitsuba's Checkerboard::mean).
     float texture_mean(const TextureRef &t) const {
-        return params.mean(t.bitmap >= 0 ? scene.bitmaps[t.bitmap].param : t.param);
+        if (t.texture < 0) return params.mean(t.param);
+        const Texture &tex = scene.textures[t.texture];
+        if (tex.type == TextureType::Checkerboard)
+            return 0.5f * (params.mean(tex.checkerboard.color0) + params.mean(tex.checkerboard.color1));
+        return params.mean(tex.bitmap.param);
     }
 };
 

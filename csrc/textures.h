@@ -1,5 +1,6 @@
-// Textures: a material input is either a constant parameter (RGB or scalar) or a bitmap whose
-// texels are a parameter too, looked up with Mitsuba's bilinear filtering and wrap modes.
+// Textures: a material input is either a constant parameter (RGB or scalar) or a texture:
+// a bitmap whose texels are a parameter (Mitsuba's bilinear filtering and wrap modes) or a
+// checkerboard of two constant parameters. Both map the surface uv through `to_uv` first.
 #pragma once
 
 #include <cmath>
@@ -9,6 +10,7 @@
 namespace rbpt {
 
 enum class WrapMode { Repeat, Mirror, Clamp };
+enum class TextureType { Bitmap, Checkerboard };
 
 struct Bitmap {
     int param = -1;  ///< parameter holding the (height, width, channels) texels, row 0 on top
@@ -33,12 +35,34 @@ struct Bitmap {
 /// Mitsuba's mesh_attribute texture: which attribute of the mesh hit it reads.
 enum class MeshAttribute { VertexColor = 0, FaceColor = 1 };
 
-/// Reference to a material input: a constant parameter, a bitmap, or a mesh attribute.
+/// Mitsuba's `checkerboard`: color0 where frac(u) > 1/2 and frac(v) > 1/2 agree, else color1.
+struct Checkerboard {
+    int color0 = -1, color1 = -1;  ///< constant parameters (RGB or scalar)
+};
+
+/// A non-constant material input, tagged by type (dispatched with a switch).
+struct Texture {
+    TextureType type = TextureType::Bitmap;
+    /// Mitsuba's `to_uv`: uv' = M (u, v, 1), the 2D affine part of the XML's 4x4 transform
+    /// (rows and columns x, y and translation). Identity: skipped.
+    float to_uv[2][3] = {{1.f, 0.f, 0.f}, {0.f, 1.f, 0.f}};
+    bool has_to_uv = false;
+    Bitmap bitmap;
+    Checkerboard checkerboard;
+
+    Vec2 map_uv(Vec2 uv) const {
+        if (!has_to_uv) return uv;
+        return {to_uv[0][0] * uv.x + to_uv[0][1] * uv.y + to_uv[0][2],
+                to_uv[1][0] * uv.x + to_uv[1][1] * uv.y + to_uv[1][2]};
+    }
+};
+
+/// Reference to a material input: a constant parameter, a texture, or a mesh attribute.
 struct TextureRef {
-    int param = -1;      ///< constant value (when bitmap < 0 and attribute < 0)
-    int bitmap = -1;     ///< index into Scene::bitmaps
+    int param = -1;      ///< constant value (when texture < 0 and attribute < 0)
+    int texture = -1;    ///< index into Scene::textures
     int attribute = -1;  ///< a MeshAttribute, read from the shape hit (Shape::attribute_param)
-    bool valid() const { return param >= 0 || bitmap >= 0 || attribute >= 0; }
+    bool valid() const { return param >= 0 || texture >= 0 || attribute >= 0; }
 };
 
 /// A mesh attribute at a hit: a vertex attribute interpolated with the barycentrics (b1, b2)
@@ -58,12 +82,10 @@ S eval_mesh_attribute(MeshAttribute which, int param, int channels, const uint32
     return params.bilinear(param, channels, index, weight, 3);
 }
 
-/// Evaluate a texture at uv. `P` is the parameter table of the number type S; a bilinear
-/// lookup is one call to P::bilinear so that autodiff types can record it as one node.
+/// Bitmap lookup at uv. A bilinear lookup is one call to P::bilinear so that autodiff types
+/// can record it as one node.
 template <typename S, typename P>
-S eval_texture(const TextureRef &tex, const Bitmap *bitmaps, const P &params, Vec2 uv) {
-    if (tex.bitmap < 0) return params.spectrum(tex.param);
-    const Bitmap &bm = bitmaps[tex.bitmap];
+S eval_bitmap(const Bitmap &bm, const P &params, Vec2 uv) {
     float x = uv.x * bm.width, y = uv.y * bm.height;
     if (bm.nearest) {
         int64_t i = bm.wrap_index(int(std::floor(x)), bm.width);
@@ -82,6 +104,24 @@ S eval_texture(const TextureRef &tex, const Bitmap *bitmaps, const P &params, Ve
                         j1 * bm.width + i1};
     float weight[4] = {wx0 * wy0, wx1 * wy0, wx0 * wy1, wx1 * wy1};
     return params.bilinear(bm.param, bm.channels, index, weight, 4);
+}
+
+/// Evaluate a material input at uv. `P` is the parameter table of the number type S.
+template <typename S, typename P>
+S eval_texture(const TextureRef &ref, const Texture *textures, const P &params, Vec2 uv) {
+    if (ref.texture < 0) return params.spectrum(ref.param);
+    const Texture &tex = textures[ref.texture];
+    uv = tex.map_uv(uv);
+    switch (tex.type) {
+        case TextureType::Bitmap:
+            return eval_bitmap<S>(tex.bitmap, params, uv);
+        case TextureType::Checkerboard: {
+            bool u_high = uv.x - std::floor(uv.x) > .5f, v_high = uv.y - std::floor(uv.y) > .5f;
+            return params.spectrum(u_high == v_high ? tex.checkerboard.color0
+                                                    : tex.checkerboard.color1);
+        }
+    }
+    return params.spectrum(ref.param);
 }
 
 }  // namespace rbpt

@@ -138,6 +138,36 @@ FEATURES_XML = """<scene version="3.0.0">
 """
 
 
+# Mitsuba features of its own scene files: a version 2.0.0 file, <spectrum> (constant, list),
+# checkerboard and bitmap to_uv, a filter with negative lobes, objects referenced before
+# their declaration.
+MITSUBA_XML = """<scene version="2.0.0">
+    <sensor type="perspective">
+        <ref id="samp"/>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
+            <string name="pixel_format" value="rgba"/><rfilter type="lanczos"><integer name="lobes" value="2"/></rfilter></film>
+    </sensor>
+    <sampler type="independent" id="samp"><integer name="sample_count" value="2"/></sampler>
+    <texture type="checkerboard" id="checks">
+        <spectrum name="color0" value="400:0.1, 550:0.8, 700:0.3"/><rgb name="color1" value="0.8, 0.2, 0.1"/>
+        <transform name="to_uv"><rotate z="1" angle="20"/><scale x="3" y="2"/></transform>
+    </texture>
+    <shape type="rectangle" id="floor">
+        <transform name="to_world"><rotate x="1" angle="-90"/><translate y="-1"/></transform>
+        <bsdf type="roughplastic"><ref name="diffuse_reflectance" id="checks"/></bsdf>
+    </shape>
+    <shape type="sphere" id="ball"><ref id="paint"/><ref id="light"/></shape>
+    <bsdf type="diffuse" id="paint">
+        <texture type="bitmap" name="reflectance"><string name="filename" value="tex.exr"/>
+            <transform name="to_uv"><scale x="2" y="0.5"/></transform></texture>
+    </bsdf>
+    <emitter type="area" id="light"><spectrum name="radiance" value="0.5"/></emitter>
+    <emitter type="constant"><spectrum name="radiance" value="400:0.2 700:0.9"/></emitter>
+    <rfilter type="mitchell" id="unused_filter"><float name="B" value="0.2"/><float name="C" value="0.4"/></rfilter>
+</scene>
+"""
+
+
 def write_assets(folder) -> None:
     """The files fuzzed scenes may name: tri.obj, tri.ply, tex.png, tex.exr, part.xml."""
     folder = Path(folder)
@@ -151,7 +181,7 @@ def main() -> None:
     import tempfile
     seeds = HERE / "seeds"
     xml = {"cornell_box.xml": BUNDLED.read_text(), "features.xml": FEATURES_XML,
-           "part.xml": PART_XML}
+           "part.xml": PART_XML, "mitsuba_features.xml": MITSUBA_XML}
     # The bundled scene's defaults are for the demo: keep the seeds cheap to load.
     xml["cornell_box.xml"] = xml["cornell_box.xml"].replace('value="128"', 'value="8"')
     with tempfile.TemporaryDirectory() as tmp:

@@ -175,11 +175,14 @@ def test13_defaults_and_overrides(tmp_path):
                             '<integer name="height" value="3"/></film></sensor>')
     assert tr.load_file(path).sensor.film.width == 5
     assert tr.load_file(path, w=7).sensor.film.width == 7
-    with pytest.raises(tr.SceneError, match="have no <default>"):
+    # As Mitsuba: a keyword argument that no attribute uses is an error, even with a <default>.
+    with pytest.raises(tr.SceneError, match=r"parameter\(s\) h given as keyword arguments are not used"):
         tr.load_file(path, h=7)
     bad = _write(tmp_path, '<bsdf type="diffuse"><float name="reflectance" value="$x"/></bsdf>', "b.xml")
     with pytest.raises(tr.SceneError, match=r"b\.xml:2: undefined parameter \$x"):
         tr.load_file(bad)
+    # ... and a $name needs no <default> when it is given as a keyword argument.
+    assert tr.load_file(bad, x=0.25).params["diffuse_0.reflectance.value"].tolist() == [0.25]
 
 
 def test14_wrong_category_and_missing_reference(tmp_path):
@@ -369,7 +372,7 @@ def test30_overflowing_transform_is_refused_not_a_crash(tmp_path):
             tr.load_file(path)
 
 
-def test22_serialized_shape_loads_with_mitsuba_keys_and_errors(tmp_path):
+def test40_serialized_shape_loads_with_mitsuba_keys_and_errors(tmp_path):
     from torch_rbpt.meshes import write_serialized
     write_serialized(tmp_path / "m.serialized", [
         dict(positions=[[0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[[0, 1, 2]]),
@@ -390,3 +393,109 @@ def test22_serialized_shape_loads_with_mitsuba_keys_and_errors(tmp_path):
     with pytest.raises(tr.SceneError, match="shape_index must be >= 0"):
         tr.load_dict({"type": "scene", "m": {"type": "serialized", "filename": "m.serialized",
                                              "shape_index": -1}}, base_dir=tmp_path)
+
+
+# -- Mitsuba 3's own scene files: versions, $name, top-level objects (MITSUBA_FACTS.md, n) --
+
+def _versioned(tmp_path, version, body, name="v.xml"):
+    path = tmp_path / name
+    path.write_text(f'<scene version="{version}">\n{body}\n</scene>\n')
+    return path
+
+
+def test31_versions_2x_load_like_3x_and_pre_2_names_are_upgraded(tmp_path):
+    body = ('<integrator type="path"><integer name="{}" value="3"/></integrator>\n'
+            '<sensor type="perspective"><string name="{}" value="y"/><float name="fov" value="30"/></sensor>')
+    for version in ("2.0.0", "2.1.0", "3.0.0", "3.5.2"):
+        scene = tr.load_file(_versioned(tmp_path, version, body.format("max_depth", "fov_axis")))
+        assert (scene.integrator.max_depth, scene.sensor.fov_axis) == (3, "y")
+    # Before 2.0.0, parameter names were camelCase; Mitsuba renames them (not <default> names).
+    old = _versioned(tmp_path, "0.5.0", '<default name="myDepth" value="4"/>\n' +
+                     body.format("maxDepth", "fovAxis").replace('value="3"', 'value="$myDepth"'))
+    scene = tr.load_file(old)
+    assert (scene.integrator.max_depth, scene.sensor.fov_axis) == (4, "y")
+    # ... but a 2.x file keeps its names, and a camelCase name there is unsupported.
+    with pytest.raises(tr.SceneError, match="unsupported parameter 'maxDepth'"):
+        tr.load_file(_versioned(tmp_path, "2.0.0", body.format("maxDepth", "fov_axis")))
+    for bad in ("3.0", "3", "2.x"):  # Mitsuba: "Invalid version number"
+        with pytest.raises(tr.SceneError, match=rf"v\.xml:1: invalid version number '{re.escape(bad)}'"):
+            tr.load_file(_versioned(tmp_path, bad, ""))
+    path = tmp_path / "none.xml"
+    path.write_text("<scene>\n</scene>\n")
+    with pytest.raises(tr.SceneError, match=r"none\.xml:1: <scene> needs a version attribute"):
+        tr.load_file(path)
+
+
+def test32_parameters_without_default_come_from_keyword_arguments(tmp_path):
+    path = _write(tmp_path, '<sensor type="perspective"><sampler type="independent">'
+                            '<integer name="sample_count" value="$spp"/></sampler>'
+                            '<film type="hdrfilm"><integer name="width" value="$res"/></film></sensor>')
+    scene = tr.load_file(path, spp=16, res="12")
+    assert (scene.sensor.spp, scene.sensor.film.width) == (16, 12)
+    with pytest.raises(tr.SceneError, match=r"scene\.xml:2: undefined parameter \$res"):
+        tr.load_file(path, spp=16)
+    with pytest.raises(tr.SceneError, match="parameter\\(s\\) foo given as keyword arguments are not used"):
+        tr.load_file(path, spp=16, res=12, foo=1)
+
+
+def test33_top_level_emitters_samplers_films_and_filters_are_referenced(tmp_path):
+    # Mitsuba's cbox declares its area light after the shape that references it. The keys
+    # follow Mitsuba's traversal: an object declared before its first user keeps its id,
+    # one declared after is named through that user (lamp.emitter, lamp.bsdf).
+    path = _write(tmp_path, '''
+    <emitter type="area" id="early"><rgb name="radiance" value="1, 2, 3"/></emitter>
+    <shape type="rectangle" id="lamp"><ref id="light"/><ref id="late"/></shape>
+    <shape type="sphere" id="ball"><ref id="early"/></shape>
+    <emitter type="area" id="light"><rgb name="radiance" value="4, 5, 6"/></emitter>
+    <bsdf type="diffuse" id="late"><rgb name="reflectance" value="0.1, 0.2, 0.3"/></bsdf>
+    <emitter type="area" id="unused"/>
+    <sampler type="independent" id="samp"><integer name="sample_count" value="7"/></sampler>
+    <rfilter type="tent" id="filt"><float name="radius" value="1.5"/></rfilter>
+    <film type="hdrfilm" id="film"><integer name="width" value="8"/><integer name="height" value="6"/><ref id="filt"/></film>
+    <sensor type="perspective"><ref id="samp"/><ref id="film"/></sensor>''')
+    scene = tr.load_file(path)
+    p = scene.params
+    assert p["lamp.emitter.radiance.value"].tolist() == [4, 5, 6]
+    assert p["early.radiance.value"].tolist() == [1, 2, 3]
+    assert p["lamp.bsdf.reflectance.value"].tolist() == pytest.approx([0.1, 0.2, 0.3])
+    assert "light.radiance.value" not in p and "late.reflectance.value" not in p
+    assert (scene.sensor.spp, scene.sensor.film.width, scene.sensor.film.filter,
+            scene.sensor.film.filter_radius) == (7, 8, "tent", 1.5)
+    twice = _write(tmp_path, '<emitter type="area" id="l"/>\n<shape type="sphere" id="a"><ref id="l"/></shape>\n'
+                             '<shape type="sphere" id="b"><ref id="l"/></shape>', "twice.xml")
+    with pytest.raises(tr.SceneError, match=r"twice\.xml:4: sphere: its area emitter is already attached to 'a'"):
+        tr.load_file(twice)
+
+
+def test34_a_referenced_area_light_lights_the_scene(tmp_path):
+    # The same scene with the light nested in its shape or declared after it and referenced
+    # renders the same image.
+    def scene_xml(light_nested):
+        light = '<emitter type="area"><rgb name="radiance" value="5"/></emitter>'
+        return f'''
+        <sensor type="perspective"><transform name="to_world"><lookat origin="0, 2, 3" target="0, 0, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+        <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/></transform></shape>
+        <shape type="sphere" id="s"><point name="center" x="0" y="1" z="0"/><float name="radius" value="0.2"/>
+            {light if light_nested else '<ref id="l"/>'}</shape>
+        {'' if light_nested else light.replace('type="area"', 'type="area" id="l"')}'''
+    a = tr.render(tr.load_file(_write(tmp_path, scene_xml(True), "a.xml")), spp=4)
+    b = tr.render(tr.load_file(_write(tmp_path, scene_xml(False), "b.xml")), spp=4)
+    assert torch.equal(a, b) and float(a.mean()) > 0.01
+
+
+def test35_nested_objects_with_an_id_can_be_referenced(tmp_path):
+    # Mitsuba 3.9.1: a BSDF declared inside shape `a` with id "inner" is usable by shape `b`;
+    # its key is named through `a`, where it is first reached.
+    path = _write(tmp_path, '<shape type="sphere" id="a"><bsdf type="diffuse" id="inner">'
+                            '<rgb name="reflectance" value="0.1, 0.2, 0.3"/></bsdf></shape>\n'
+                            '<shape type="sphere" id="b"><ref id="inner"/></shape>')
+    scene = tr.load_file(path)
+    assert [k for k in scene.params if k.endswith(".value")] == ["a.bsdf.reflectance.value"]
+
+
+def test36_textured_emission_is_a_clear_error():
+    for emitter, name in (({"type": "point"}, "intensity"), ({"type": "constant"}, "radiance")):
+        scene = {"type": "scene", "e": {**emitter, name: {"type": "checkerboard"}}}
+        with pytest.raises(tr.SceneError, match=rf"<dict>: {emitter['type']}: .*textured .* not supported"):
+            tr.load_dict(scene)

@@ -25,6 +25,12 @@ SETTINGS = {
     "cbox": (8192, 4, False),
     "veach_mis_both": (2048, 4, False),
     "veach_mis_lum": (12288, 4, True),
+    # Mitsuba features (tests/references/scenes/): spectra, textures, filters.
+    "spectra": (1024, 4, False),
+    "textures": (1024, 4, False),
+    "filter_mitchell": (2048, 2, False),
+    "filter_catmullrom": (2048, 2, False),
+    "filter_lanczos": (2048, 2, False),
 }
 
 
@@ -41,7 +47,7 @@ def block_mean(img, k):
 
 def load_reference_scene(entry):
     scene_path = entry["scene"]
-    path = ROOT / scene_path if scene_path.startswith("torch_rbpt") else SHARED / scene_path
+    path = ROOT / scene_path if scene_path.startswith(("torch_rbpt", "tests")) else SHARED / scene_path
     if not path.exists():
         pytest.skip(f"{path} not found")
     scene = tr.load_file(path, **entry.get("defaults", {}))

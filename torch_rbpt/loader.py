@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import _C, meshes
+from . import _C, meshes, spectra
 from .images import read_image
 from .mitsuba_xml import SceneError, read_xml
 from .scene import Film, Integrator, Scene, Sensor
@@ -25,9 +25,10 @@ CATEGORY = {
     "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape", "disk": "shape", "cylinder": "shape",
     "shapegroup": "shape", "instance": "shape",
     "area": "emitter", "point": "emitter", "constant": "emitter",
-    "bitmap": "texture", "mesh_attribute": "texture",
+    "bitmap": "texture", "checkerboard": "texture", "mesh_attribute": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
-    "gaussian": "rfilter", "independent": "sampler",
+    "gaussian": "rfilter", "mitchell": "rfilter", "catmullrom": "rfilter", "lanczos": "rfilter",
+    "independent": "sampler",
     "path": "integrator", "prb": "integrator", "direct": "integrator",
 }
 
@@ -53,18 +54,23 @@ PROPERTIES = {
     "area": {"radiance"},
     "point": {"position", "intensity", "to_world"},
     "constant": {"radiance"},
-    "bitmap": {"filename", "raw", "filter_type", "wrap_mode"},
+    "bitmap": {"filename", "raw", "filter_type", "wrap_mode", "to_uv"},
+    "checkerboard": {"color0", "color1", "to_uv"},
     "mesh_attribute": {"name", "scale"},
     "perspective": {"fov", "fov_axis", "focal_length", "near_clip", "far_clip", "focus_distance",
                     "to_world", "principal_point_offset_x", "principal_point_offset_y"},
     "hdrfilm": {"width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
                 "pixel_format", "component_format", "file_format", "sample_border"},
-    "box": set(), "tent": {"radius"}, "gaussian": {"stddev"},
+    "box": set(), "tent": {"radius"}, "gaussian": {"stddev"}, "mitchell": {"B", "C"},
+    "catmullrom": set(), "lanczos": {"lobes"},
     "independent": {"sample_count", "seed"},
     "path": {"max_depth", "rr_depth", "hide_emitters"},
     "prb": {"max_depth", "rr_depth", "hide_emitters"},
     "direct": {"emitter_samples", "bsdf_samples", "shading_samples", "hide_emitters"},
 }
+
+# hdrfilm's pixel formats (Mitsuba 3.9); render() returns linear RGB for all of them.
+PIXEL_FORMATS = ("rgb", "rgba", "luminance", "luminance_alpha", "xyz", "xyza")
 
 # Named indices of refraction (Mitsuba's ior.h).
 IOR = {
@@ -89,7 +95,7 @@ def _where(node) -> str:
 
 
 def _is_plugin(value) -> bool:
-    return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb",)
+    return isinstance(value, dict) and "type" in value and value["type"] not in ("rgb", "spectrum")
 
 
 def _check_plugin_dicts(node: dict, key: str) -> None:
@@ -126,9 +132,11 @@ class _Builder:
         self.native = _C.Scene()
         self.params: dict[str, torch.Tensor] = {}
         self.fixed: dict[str, tuple] = {}  # key -> (tensor, why it cannot be differentiated)
-        self.objects = {}  # id -> top-level plugin dict
+        self.objects = {}  # id -> plugin dict (top-level ones, then nested ones with an id)
         self.built_bsdfs: dict[int, int] = {}  # id(node) -> native BSDF index
-        self.built_textures: dict[int, tuple] = {}
+        self.built_textures: dict[int, int] = {}
+        self.built_emitters: dict[int, int] = {}  # id(area emitter node) -> radiance parameter
+        self.attached: dict[int, str] = {}  # id(area emitter node) -> key of its shape
         self.built_shapes: set[int] = set()  # id(node) of shapes built (shapegroup members)
         self.default_bsdfs: dict[int, dict] = {}  # id(shape node) -> its default BSDF
         self.bsdf_attributes: set = set()  # mesh attributes read by the BSDF being built
@@ -137,6 +145,16 @@ class _Builder:
         for key, value in scene.items():
             if _is_plugin(value) and value["type"] != "ref":
                 self.objects[value.get("__id__", key)] = value
+        # As in Mitsuba, a nested object with an id can be referenced from elsewhere too.
+        self._collect_nested_ids(scene)
+
+    def _collect_nested_ids(self, node: dict) -> None:
+        for name, value in node.items():
+            if str(name).startswith("__") or not _is_plugin(value) or value["type"] == "ref":
+                continue
+            if node.get("type") != "scene" and "__id__" in value:
+                self.objects.setdefault(value["__id__"], value)
+            self._collect_nested_ids(value)
 
     # -- helpers ------------------------------------------------------------------------------
 
@@ -305,35 +323,43 @@ class _Builder:
     # -- textures ------------------------------------------------------------------------------
 
     def texture(self, owner, name: str, key: str, default):
-        """A material input: returns (param, bitmap) for the C++ side."""
+        """A material or emission input: returns (param, texture) for the C++ side, one of
+        them -1. Constants (numbers, rgb, spectrum) become the parameter `<key>.value`;
+        textures (bitmap, checkerboard) register their own parameters under `key`."""
         value = owner.get(name, default)
         if isinstance(value, dict) and value.get("type") == "ref":
             value = self.deref(value, "texture", owner)
-            key = value.get("__id__", key)
+        if isinstance(value, dict) and value.get("type") in ("bitmap", "checkerboard"):
+            return -1, self.build_texture(value, key)
+        if isinstance(value, dict) and value.get("type") == "mesh_attribute":
+            return self.mesh_attribute(owner, value)
+        return self.constant(owner, name, key, value), -1
+
+    def constant(self, owner, name: str, key: str, value) -> int:
+        """A constant input (a number, 1 or 3 numbers, rgb or spectrum) as the parameter
+        `<key>.value`, of 1 or 3 entries as Mitsuba's traverse has it."""
         if isinstance(value, dict) and value.get("type") == "rgb":
             v = self.floats(value, name, value["value"])
             if v.size == 1:
                 v = np.repeat(v, 3)
             if v.size != 3:
                 self.fail(value, f"rgb '{name}' needs 1 or 3 values")
-            return self.add_param(f"{key}.value", v), -1
-        if isinstance(value, dict) and value.get("type") == "bitmap":
-            return -1, self.bitmap(value, key)
-        if isinstance(value, dict) and value.get("type") == "mesh_attribute":
-            return self.mesh_attribute(owner, value)
+            return self.add_param(f"{key}.value", v)
+        if isinstance(value, dict) and value.get("type") == "spectrum":
+            return self.add_param(f"{key}.value", self.spectrum(value, name, CATEGORY.get(owner["type"]) == "emitter"))
         if isinstance(value, dict):
             self.fail(value, f"'{name}': unsupported texture '{value.get('type')}' (supported: rgb, "
-                             f"bitmap, or a number)")
+                             f"spectrum, bitmap, checkerboard, or a number)")
         if isinstance(value, (torch.Tensor, np.ndarray, list, tuple)):
             v = self.floats(owner, name, value)
             if v.size not in (1, 3):
                 self.fail(owner, f"{owner['type']}: '{name}' needs 1 or 3 values, got {v.size}")
-            return self.add_param(f"{key}.value", v), -1
+            return self.add_param(f"{key}.value", v)
         try:
             v = float(value)
         except (TypeError, ValueError, OverflowError):
-            self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb or bitmap, got {value!r}")
-        return self.add_param(f"{key}.value", [v]), -1
+            self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb, spectrum or texture, got {value!r}")
+        return self.add_param(f"{key}.value", [v])
 
     def mesh_attribute(self, owner, node) -> tuple:
         """Mitsuba's mesh_attribute texture, as a BSDF input: (param, bitmap, attribute)."""
@@ -346,9 +372,52 @@ class _Builder:
         self.bsdf_attributes.add(name)
         return -1, -1, MESH_ATTRIBUTES.index(name)
 
-    def bitmap(self, node, key: str) -> int:
+    def spectrum(self, node, name: str, emitted: bool) -> np.ndarray:
+        """A `spectrum` dict ("value": a number or [[wavelength, value], ...], or "filename")
+        as Mitsuba's RGB variants convert it (see spectra.py): 1 value or RGB."""
+        try:
+            if "filename" in node:
+                if "value" in node:
+                    raise spectra.SpectrumError("give either 'value' or 'filename', not both")
+                return spectra.pairs_to_rgb(*spectra.read_spd(self.resolve(node, node["filename"])), emitted)
+            if "value" not in node:
+                raise spectra.SpectrumError("needs a 'value' or a 'filename'")
+            value = node["value"]
+            if isinstance(value, numbers.Real) and not isinstance(value, bool):
+                return spectra.constant_to_value(float(value), emitted)
+            pairs = np.asarray(value, dtype=np.float64)
+            if pairs.ndim != 2 or pairs.shape[1] != 2:
+                raise spectra.SpectrumError(f"'value' must be a number or (wavelength, value) pairs, got {value!r}")
+            return spectra.pairs_to_rgb(pairs[:, 0], pairs[:, 1], emitted)
+        except (spectra.SpectrumError, OSError, TypeError, ValueError) as e:
+            self.fail(node, f"spectrum '{name}': {e}")
+
+    def to_uv(self, node, key: str) -> list:
+        """Mitsuba's texture `to_uv`: the 2D affine part (rows and columns x, y, translation)
+        of a 4x4 transform, applied to (u, v, 1); exposed read-only as `<key>.to_uv` (3x3)."""
+        m = self.matrix(node, "to_uv")
+        m3 = m[np.ix_([0, 1, 3], [0, 1, 3])]
+        self.add_fixed(f"{key}.to_uv", m3, "a texture's to_uv transform is fixed at load")
+        return [] if np.array_equal(m3, np.eye(3)) else m3[:2].tolist()
+
+    def build_texture(self, node, key: str) -> int:
+        """A texture plugin (bitmap or checkerboard), once per node; its native index."""
         if id(node) in self.built_textures:
             return self.built_textures[id(node)]
+        if node["type"] == "bitmap":
+            index = self.bitmap(node, key)
+        else:
+            self.check(node, "texture")
+            c0 = self.texture(node, "color0", f"{key}.color0", 0.4)
+            c1 = self.texture(node, "color1", f"{key}.color1", 0.2)
+            if c0[1] >= 0 or c1[1] >= 0:
+                self.fail(node, "checkerboard: color0 and color1 must be constants (a number, rgb "
+                                "or spectrum), not textures")
+            index = self.add_native(node, "checkerboard", c0[0], c1[0], self.to_uv(node, key))
+        self.built_textures[id(node)] = index
+        return index
+
+    def bitmap(self, node, key: str) -> int:
         self.check(node, "texture")
         if "filename" not in node:
             self.fail(node, "bitmap: missing parameter 'filename'")
@@ -373,9 +442,7 @@ class _Builder:
         self.params[f"{key}.data"] = self.params[f"{key}.data"].reshape(h, w, c)
         filt = self.string(node, "filter_type", "bilinear", ("bilinear", "nearest"))
         wrap = self.string(node, "wrap_mode", "repeat", ("repeat", "mirror", "clamp"))
-        index = self.add_native(node, "bitmap", param, w, h, c, wrap, filt == "nearest")
-        self.built_textures[id(node)] = index
-        return index
+        return self.add_native(node, "bitmap", param, w, h, c, wrap, filt == "nearest", self.to_uv(node, key))
 
     # -- BSDFs ---------------------------------------------------------------------------------
 
@@ -389,7 +456,6 @@ class _Builder:
         return index
 
     def build_bsdf(self, node, key: str, twosided: bool) -> int:
-        key = node.get("__id__", key)
         t = node["type"]
         self.check(node, "bsdf", nested=("bsdf", "texture") if t == "twosided" else ("texture",))
         if t == "twosided":
@@ -489,7 +555,7 @@ class _Builder:
             self.fail(node, f"{t}: a shape takes one BSDF, got {len(bsdfs)}")
         if bsdfs:
             name, child, referenced = bsdfs[0]
-            bsdf = self.bsdf(child, child.get("__id__", f"{key}.bsdf"))
+            bsdf = self.bsdf(child, f"{key}.bsdf")
         else:  # Mitsuba's default: a diffuse BSDF of reflectance 0.5
             default = self.default_bsdfs.setdefault(id(node), {"type": "diffuse", "__where__": _where(node)})
             bsdf = self.bsdf(default, f"{key}.bsdf")
@@ -576,14 +642,27 @@ class _Builder:
         if len(emitters) > 1:
             self.fail(node, f"{t}: a shape takes one emitter, got {len(emitters)}")
         for _, em, _ in emitters:
-            self.check(em, "emitter")
             if em["type"] != "area":
+                self.check(em, "emitter")
                 self.fail(em, f"only 'area' emitters can be attached to a shape, got '{em['type']}'")
-            ekey = em.get("__id__", f"{key}.emitter")
-            param, bitmap = self.texture(em, "radiance", f"{ekey}.radiance", None if "radiance" in em else 1.0)
-            if bitmap >= 0:
-                self.fail(em, "area: textured radiance is not supported")
-            self.add_native(em, "emitter", "area", param, shape, [])
+            if id(em) in self.attached:
+                self.fail(node, f"{t}: its area emitter is already attached to '{self.attached[id(em)]}' "
+                                f"(as in Mitsuba, an emitter can be attached to a single shape)")
+            self.attached[id(em)] = key
+            self.add_native(em, "emitter", "area", self.area_radiance(em, f"{key}.emitter"), shape, [])
+
+    def area_radiance(self, node, key: str) -> int:
+        """An area emitter's radiance parameter, once per node. Its key follows Mitsuba's
+        traversal: the emitter's id if declared at top level before the shape that references
+        it, else `<shape>.emitter`."""
+        if id(node) not in self.built_emitters:
+            self.check(node, "emitter")
+            param, texture = self.texture(node, "radiance", f"{key}.radiance",
+                                          None if "radiance" in node else 1.0)
+            if texture >= 0:
+                self.fail(node, "area: textured radiance is not supported")
+            self.built_emitters[id(node)] = param
+        return self.built_emitters[id(node)]
 
     def mesh_attributes(self, node, key, t, bsdf, shape, mesh) -> None:
         """Register a mesh's vertex_color / face_color (keys `<shape>.vertex_color`, flat as
@@ -649,19 +728,24 @@ class _Builder:
         self.check(node, "emitter")
         t = node["type"]
         if t == "area":
-            self.fail(node, "an area emitter must be nested in a shape")
+            # Declared at top level: attached to the shape that references it (before or
+            # after this point); unreferenced, it emits nothing (as in Mitsuba).
+            self.area_radiance(node, key)
+            return
         if t == "point":
             if "position" in node and "to_world" in node:
                 self.fail(node, "point: give either 'position' or 'to_world', not both")
             position = self.vector(node, "position", [0, 0, 0])
             if "to_world" in node:
                 position = self.matrix(node) @ np.append(position, 1.0)
-            param, _ = self.texture(node, "intensity", f"{key}.intensity", 1.0)
+            param, texture = self.texture(node, "intensity", f"{key}.intensity", 1.0)
+            if texture >= 0:
+                self.fail(node, "point: a textured intensity is not supported (use rgb, spectrum or a number)")
             self.add_native(node, "emitter", "point", param, -1, [float(x) for x in position[:3]])
         else:
             param, bitmap = self.texture(node, "radiance", f"{key}.radiance", 1.0)
             if bitmap >= 0:
-                self.fail(node, "constant: textured radiance is not supported (use rgb or a number)")
+                self.fail(node, "constant: textured radiance is not supported (use rgb, spectrum or a number)")
             self.add_native(node, "emitter", "constant", param, -1, [])
 
     # -- sensor and integrator ---------------------------------------------------------------
@@ -707,6 +791,11 @@ class _Builder:
     def film(self, node) -> Film:
         self.check(node, "film", nested=("rfilter",))
         f = Film(width=self.number(node, "width", 768, int), height=self.number(node, "height", 576, int))
+        # Accepted as Mitsuba does (case-insensitive); render() returns linear RGB whatever it is.
+        f.pixel_format = self.string(node, "pixel_format", "rgb").lower()
+        if f.pixel_format not in PIXEL_FORMATS:
+            self.fail(node, f"hdrfilm: pixel_format must be one of {', '.join(PIXEL_FORMATS)}, got "
+                            f"'{node['pixel_format']}'")
         if f.width <= 0 or f.height <= 0:
             self.fail(node, f"hdrfilm: width and height must be positive, got {f.width}x{f.height}")
         if any(k in node for k in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height")):
@@ -725,9 +814,19 @@ class _Builder:
                 f.filter_radius = 0.5
             elif f.filter == "tent":
                 f.filter_radius = self.number(rf, "radius", 1.0)
-            else:
+            elif f.filter == "gaussian":
                 f.filter_stddev = self.number(rf, "stddev", 0.5)
                 f.filter_radius = 4 * f.filter_stddev
+            elif f.filter == "mitchell":  # Mitsuba: radius 2, B = C = 1/3 by default
+                f.filter_radius = 2.0
+                f.filter_b, f.filter_c = self.number(rf, "B", 1 / 3), self.number(rf, "C", 1 / 3)
+            elif f.filter == "catmullrom":  # Mitchell-Netravali with B = 0, C = 1/2
+                f.filter_radius, f.filter_b, f.filter_c = 2.0, 0.0, 0.5
+            else:  # lanczos: sinc(x) sinc(x / lobes), radius = lobes (default 3)
+                f.filter_lobes = self.number(rf, "lobes", 3, int)
+                if f.filter_lobes <= 0:
+                    self.fail(rf, f"lanczos: lobes must be positive, got {f.filter_lobes}")
+                f.filter_radius = float(f.filter_lobes)
             if not f.filter_radius > 0:
                 self.fail(rf, f"{f.filter}: the filter radius must be positive")
         return f
@@ -779,9 +878,8 @@ class _Builder:
             elif cat == "bsdf":
                 self.bsdf(value, key)  # registers its parameters even if unused
             elif cat == "texture":
-                self.bitmap(value, key)
-            else:
-                raise SceneError(f"{_where(value)}: a {cat} must be nested in a sensor or film")
+                self.build_texture(value, key)
+            # A top-level film, rfilter or sampler is used where a sensor (or film) references it.
         if sensor is None:
             sensor = Sensor()
         self.native.build()

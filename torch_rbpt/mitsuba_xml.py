@@ -14,16 +14,24 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
+from .spectra import SpectrumError, parse_pairs
 from .transform import Transform
 
 PLUGIN_TAGS = ("bsdf", "shape", "emitter", "texture", "sensor", "film", "rfilter", "sampler",
                "integrator")
-VALUE_TAGS = ("float", "integer", "boolean", "string", "rgb", "point", "vector", "transform",
-              "ref")
+VALUE_TAGS = ("float", "integer", "boolean", "string", "rgb", "spectrum", "point", "vector",
+              "transform", "ref")
 
 
 class SceneError(ValueError):
     """A scene description is invalid; the message names the file and line when known."""
+
+
+def _snake_case(name: str) -> str:
+    """Mitsuba's upgrade of pre-2.0 names: "maxDepth" -> "max_depth", "intIOR" -> "int_ior",
+    "aBcD" -> "a_bc_d" (an underscore before each run of capitals that follows a lower-case
+    letter, the run lower-cased)."""
+    return re.sub(r"(?<=[a-z])([A-Z]+)", lambda m: "_" + m.group(1).lower(), name)
 
 
 def _numbers(text: str, where: str, what: str) -> list[float]:
@@ -67,18 +75,38 @@ class XMLReader:
         if root.tag != "scene":
             raise SceneError(f"{self.path}:{root.sourceline}: the root element must be <scene>, "
                              f"got <{root.tag}>")
-        version = root.get("version")
-        if version is None or not version.split(".")[0] == "3":
-            raise SceneError(f"{self.path}:{root.sourceline}: expected <scene version=\"3.x\">, got "
-                             f"version={version!r} (only Mitsuba 3 scenes are supported)")
+        self._upgrade(root, self.path, required=True)
         scene = {"type": "scene", "__where__": f"{self.path}:{root.sourceline}"}
         self._children(root, scene, self.path)
         scene["__search__"] = self.search_paths[1:]
         unused = set(self.overrides) - self.used_overrides
         if unused:
-            raise SceneError(f"{self.path}: parameter(s) {sorted(unused)} given on the command "
-                             f"line or as keyword arguments have no <default> in the scene")
+            # As Mitsuba: a parameter that no attribute uses is an error ("unused parameters").
+            raise SceneError(f"{self.path}: parameter(s) {', '.join(sorted(unused))} given as "
+                             f"keyword arguments are not used in the scene (no attribute refers "
+                             f"to ${sorted(unused)[0]})")
         return scene
+
+    @staticmethod
+    def _upgrade(root, path: Path, required: bool) -> None:
+        """Check the root's version="major.minor.patch" and bring older files up to date as
+        Mitsuba 3.9 does: 2.x and 3.x files read alike; before 2.0.0, parameter names were
+        camelCase (maxDepth) and become snake_case (max_depth), except <default> names."""
+        version = root.get("version")
+        where = f"{path}:{root.sourceline}"
+        if version is None:
+            if required:
+                raise SceneError(f"{where}: <{root.tag}> needs a version attribute, e.g. "
+                                 f"<scene version=\"3.0.0\">")
+            return
+        if not re.fullmatch(r"\d+\.\d+\.\d+", version.strip()):
+            raise SceneError(f"{where}: invalid version number '{version}' (expected "
+                             f"major.minor.patch, e.g. \"3.0.0\")")
+        if tuple(int(x) for x in version.strip().split(".")) >= (2, 0, 0):
+            return
+        for el in root.iter():
+            if isinstance(el.tag, str) and el.tag != "default" and el.get("name") is not None:
+                el.set("name", _snake_case(el.get("name")))
 
     def _parse(self, path: Path):
         try:
@@ -108,13 +136,17 @@ class XMLReader:
             raise SceneError(f"{where}: {what}: cannot parse a number from '{text}'") from None
 
     def _substitute(self, value: str, where: str) -> str:
+        """$name -> a keyword argument of that name, else its <default> (as Mitsuba, a
+        keyword argument needs no <default>)."""
         def repl(m):
             name = m.group(1)
-            if name in self.overrides and name in self.defaults:
+            if name in self.overrides:
+                self.used_overrides.add(name)
                 return self.overrides[name]
             if name in self.defaults:
                 return self.defaults[name]
-            raise SceneError(f"{where}: undefined parameter ${name} (no <default name=\"{name}\">)")
+            raise SceneError(f"{where}: undefined parameter ${name} (no <default name=\"{name}\"> "
+                             f"and no keyword argument {name}=...)")
         return re.sub(r"\$(\w+)", repl, value)
 
     def _children(self, el, node: dict, file: Path) -> None:
@@ -128,8 +160,6 @@ class XMLReader:
                 name = child.get("name")
                 if name is None or child.get("value") is None:
                     raise SceneError(f"{where}: <default> needs 'name' and 'value'")
-                if name in self.overrides:
-                    self.used_overrides.add(name)
                 self.defaults.setdefault(name, child.get("value"))
             elif tag == "path":
                 folder = self._attr(child, "value", where)
@@ -149,6 +179,7 @@ class XMLReader:
                 if root.tag != "scene":
                     raise SceneError(f"{target}:{root.sourceline}: an included file must have a "
                                      f"<scene> root, got <{root.tag}>")
+                self._upgrade(root, target, required=False)
                 self.include_stack.append((target.resolve(), where))
                 self._children(root, node, target)
                 self.include_stack.pop()
@@ -212,6 +243,8 @@ class XMLReader:
             if len(v) != 3:
                 raise SceneError(f"{where}: <{tag} name=\"{name}\"> needs 3 values, got {len(v)}")
             return name, v
+        if tag == "spectrum":
+            return name, self._spectrum(el, name, where)
         text = self._attr(el, "value", where)
         try:
             if tag == "float":
@@ -232,6 +265,29 @@ class XMLReader:
                 raise SceneError(f"{where}: <rgb name=\"{name}\"> needs 1 or 3 values, got {len(v)}")
             return name, {"type": "rgb", "value": v * 3 if len(v) == 1 else v, "__where__": where}
         raise SceneError(f"{where}: unsupported value <{tag}>")
+
+    def _spectrum(self, el, name: str, where: str) -> dict:
+        """<spectrum value="0.5"/>, value="400:0.1, 700:0.5" or filename="x.spd": a dict of
+        type "spectrum" (converted to RGB by the loader, which knows whether it is emitted)."""
+        node = {"type": "spectrum", "__where__": where}
+        if (el.get("value") is None) == (el.get("filename") is None):
+            raise SceneError(f"{where}: <spectrum name=\"{name}\"> needs either 'value' or 'filename'")
+        if el.get("filename") is not None:
+            node["filename"] = str(self.resolve(self._attr(el, "filename", where), where))
+            return node
+        text = self._attr(el, "value", where)
+        try:
+            if ":" in text:
+                w, v = parse_pairs(text)
+                node["value"] = [[a, b] for a, b in zip(w.tolist(), v.tolist())]
+            else:
+                node["value"] = float(text)
+        except SpectrumError as e:
+            raise SceneError(f"{where}: <spectrum name=\"{name}\">: {e}") from None
+        except ValueError:
+            raise SceneError(f"{where}: <spectrum name=\"{name}\">: cannot parse '{text}' (expected "
+                             f"a number or wavelength:value pairs)") from None
+        return node
 
     def _transform(self, el, where: str) -> Transform:
         t = Transform()

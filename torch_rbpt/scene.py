@@ -62,13 +62,18 @@ class SceneParams(MutableMapping):
 
 @dataclass
 class Film:
-    """`hdrfilm`: size in pixels, crop window and reconstruction filter."""
+    """`hdrfilm`: size in pixels, crop window and reconstruction filter (`filter` is the
+    rfilter's type; "catmullrom" is evaluated as mitchell with B = 0, C = 1/2)."""
     width: int = 768
     height: int = 576
     crop: tuple[int, int, int, int] | None = None  # (x, y, width, height); None: full film
     filter: str = "gaussian"
     filter_radius: float = 2.0
     filter_stddev: float = 0.5
+    filter_b: float = 1 / 3  # mitchell's B and C (catmullrom: 0 and 1/2)
+    filter_c: float = 1 / 3
+    filter_lobes: int = 3  # lanczos
+    pixel_format: str = "rgb"  # as given in the scene; render() always returns linear RGB
 
     def crop_window(self) -> tuple[int, int, int, int]:
         return self.crop if self.crop is not None else (0, 0, self.width, self.height)
@@ -106,10 +111,13 @@ class Sensor:
 
     def native(self) -> dict:
         f = self.film
+        catmullrom = f.filter == "catmullrom"
         return {"to_world": self.to_world.tolist(), "fov_x": self.x_fov(), "width": f.width,
                 "height": f.height, "near_clip": self.near_clip, "far_clip": self.far_clip,
-                "crop": list(f.crop_window()), "filter": f.filter,
-                "filter_radius": f.filter_radius, "filter_stddev": f.filter_stddev}
+                "crop": list(f.crop_window()), "filter": "mitchell" if catmullrom else f.filter,
+                "filter_radius": f.filter_radius, "filter_stddev": f.filter_stddev,
+                "filter_b": 0.0 if catmullrom else f.filter_b,
+                "filter_c": 0.5 if catmullrom else f.filter_c, "filter_lobes": f.filter_lobes}
 
 
 @dataclass

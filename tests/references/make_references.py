@@ -46,7 +46,8 @@ import mitsuba_ref  # noqa: E402
 SEEDS = (1, 2)
 FLOOR = 0.02
 
-# name, scene file (relative to /work/shared or to the project root), defaults, width, height,
+# name, scene file (relative to /work/shared, or to the project root when it starts with
+# torch_rbpt/ or tests/), defaults, width, height,
 # total spp, optional: file rendered instead (same expectation), spp of the own-integrator check.
 REFERENCES = [
     dict(name="cbox", scene="scenes/cbox/cbox.xml", defaults=dict(res=64), spp=106496),
@@ -60,11 +61,23 @@ REFERENCES = [
          width=96, height=64, same_as="veach_mis_both", check_spp=8192),
     dict(name="cornell_box", scene="torch_rbpt/scenes/cornell_box.xml",
          defaults=dict(res=64), spp=49152),
+    # Small scenes of Mitsuba features (tests/references/scenes/): <spectrum>, a version 2.0.0
+    # file, top-level objects referenced before their declaration, $name without <default>;
+    # checkerboard and bitmap to_uv; filters with negative lobes.
+    dict(name="spectra", scene="tests/references/scenes/spectra.xml",
+         defaults=dict(res=64, spp=16), spp=65536),
+    dict(name="textures", scene="tests/references/scenes/textures.xml", spp=65536),
+    dict(name="filter_mitchell", scene="tests/references/scenes/filters.xml",
+         defaults=dict(filter="mitchell"), spp=65536),
+    dict(name="filter_catmullrom", scene="tests/references/scenes/filters.xml",
+         defaults=dict(filter="catmullrom"), spp=65536),
+    dict(name="filter_lanczos", scene="tests/references/scenes/filters.xml",
+         defaults=dict(filter="lanczos"), spp=65536),
 ]
 
 
 def scene_path(rel):
-    if rel.startswith("torch_rbpt/"):
+    if rel.startswith(("torch_rbpt/", "tests/")):
         return os.path.join(ROOT, rel)
     return os.path.join(SHARED, rel)
 
