@@ -35,9 +35,11 @@ Vec3 vec3(const std::vector<float> &v, const char *what) {
 TextureRef texture_ref(const py::object &o) {
     TextureRef t;
     if (o.is_none()) return t;
-    auto pair = o.cast<std::pair<int, int>>();
-    t.param = pair.first;
-    t.texture = pair.second;
+    auto values = o.cast<std::vector<int>>();  // (param, texture) or (param, bitmap, attribute)
+    if (values.size() != 2 && values.size() != 3) fail("a texture is (param, texture[, attribute])");
+    t.param = values[0];
+    t.texture = values[1];
+    if (values.size() == 3) t.attribute = values[2];
     return t;
 }
 
@@ -509,6 +511,35 @@ py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tenso
     return py::make_tuple(t, shape);
 }
 
+/// Surface interactions of a batch of rays (for tests): (t (N,), shape (N,), p (N, 3),
+/// geometric normal n (N, 3), uv (N, 2)); misses have t = inf, shape -1 and zeros.
+py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
+    origins = float_array(origins, 3, "origins");
+    directions = float_array(directions, 3, "directions");
+    int64_t n = origins.size(0);
+    if (directions.size(0) != n) fail("origins and directions must have the same length");
+    torch::Tensor t = torch::full({n}, std::numeric_limits<float>::infinity(), torch::kFloat32);
+    torch::Tensor shape = torch::full({n}, -1, torch::kInt64);
+    torch::Tensor p = torch::zeros({n, 3}), nrm = torch::zeros({n, 3}), uv = torch::zeros({n, 2});
+    const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
+    for (int64_t i = 0; i < n; ++i) {
+        Ray ray;
+        ray.o = {o[3 * i], o[3 * i + 1], o[3 * i + 2]};
+        ray.d = normalize(Vec3{d[3 * i], d[3 * i + 1], d[3 * i + 2]});
+        SurfaceInteraction si = scene.intersect(ray);
+        if (!si.valid) continue;
+        t[i] = si.t;
+        shape[i] = si.shape;
+        for (int k = 0; k < 3; ++k) {
+            p[i][k] = si.p[k];
+            nrm[i][k] = si.n[k];
+        }
+        uv[i][0] = si.uv.x;
+        uv[i][1] = si.uv.y;
+    }
+    return py::make_tuple(t, shape, p, nrm, uv);
+}
+
 // ---- Scene construction ------------------------------------------------------------------
 
 int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
@@ -533,6 +564,8 @@ int add_mesh(Scene &scene, torch::Tensor positions, torch::Tensor faces,
     shape.flip_normals = flip_normals;
     shape.tri_begin = uint32_t(g.triangles.size());
     shape.tri_count = uint32_t(nf);
+    shape.vertex_begin = base;
+    shape.vertex_count = uint32_t(nv);
     const float *p = positions.data_ptr<float>();
     for (int64_t i = 0; i < nv; ++i) g.positions.push_back({p[3 * i], p[3 * i + 1], p[3 * i + 2]});
     // Keep the optional vertex arrays the same length as positions.
@@ -579,7 +612,73 @@ int add_sphere(Scene &scene, const std::vector<float> &center, float radius,
     shape.local_y = normalize(vec3(frame[1], "frame axis"));
     shape.local_z = normalize(vec3(frame[2], "frame axis"));
     Geometry &g = scene.geometry;
-    g.spheres.push_back(uint32_t(g.shapes.size()));
+    g.analytic.push_back(uint32_t(g.shapes.size()));
+    g.shapes.push_back(shape);
+    return int(g.shapes.size()) - 1;
+}
+
+/// Give mesh `shape` its vertex_color (0) or face_color (1) attribute: parameter `param` of
+/// `channels` (1 or 3) values per vertex or face.
+void set_mesh_attribute(Scene &scene, int shape, int which, int param, int channels) {
+    if (shape < 0 || shape >= int(scene.geometry.shapes.size())) fail("shape index out of range");
+    Shape &s = scene.geometry.shapes[shape];
+    if (s.kind != ShapeKind::Mesh) fail("mesh attributes need a mesh");
+    if (which < 0 || which > 1 || (channels != 1 && channels != 3)) fail("bad mesh attribute");
+    if (param < 0 || param >= int(scene.params.size())) fail("unknown parameter");
+    int64_t count = which == 0 ? s.vertex_count : s.tri_count;
+    if (scene.params[param].numel != count * channels)
+        fail("mesh attribute has " + std::to_string(scene.params[param].numel) + " values, expected " +
+             std::to_string(count * channels));
+    s.attribute_param[which] = param;
+    s.attribute_channels[which] = channels;
+}
+
+/// A disk or cylinder: p = center + axes[0] x + axes[1] y + axes[2] z from object space (the
+/// unit disk at z = 0, or the cylinder of `radius` around z in [0, length] with unit axes).
+/// The inverse map is computed in double from the float32 values the shape keeps.
+int add_disk_or_cylinder(Scene &scene, const std::string &kind, const std::vector<float> &center,
+                         const std::vector<std::vector<float>> &axes, float radius, float length,
+                         int bsdf, bool flip_normals) {
+    if (bsdf < 0 || bsdf >= int(scene.bsdfs.size())) fail(kind + " BSDF index out of range");
+    if (axes.size() != 3) fail(kind + " needs 3 axes");
+    Shape shape;
+    shape.kind = kind == "disk" ? ShapeKind::Disk : ShapeKind::Cylinder;
+    if (kind != "disk" && kind != "cylinder") fail("unknown analytic shape " + kind);
+    shape.bsdf = bsdf;
+    shape.flip_normals = flip_normals;
+    shape.center = vec3(center, "center");
+    shape.local_x = vec3(axes[0], "axis");
+    shape.local_y = vec3(axes[1], "axis");
+    shape.local_z = vec3(axes[2], "axis");
+    shape.radius = radius;
+    shape.length = length;
+    double m[3][3], inv[3][3];
+    for (int i = 0; i < 3; ++i) {
+        m[i][0] = shape.local_x[i];
+        m[i][1] = shape.local_y[i];
+        m[i][2] = shape.local_z[i];
+    }
+    double det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
+                 m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+                 m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    bool finite = std::isfinite(det) && std::isfinite(radius) && std::isfinite(length);
+    for (int i = 0; i < 3; ++i) finite = finite && std::isfinite(shape.center[i]);
+    if (!finite || det == 0.0 || !(radius > 0.f) || !(length > 0.f))
+        fail(kind + ": to_world must be finite and invertible, radius and length positive");
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            int i1 = (j + 1) % 3, i2 = (j + 2) % 3, j1 = (i + 1) % 3, j2 = (i + 2) % 3;
+            inv[i][j] = (m[i1][j1] * m[i2][j2] - m[i1][j2] * m[i2][j1]) / det;
+        }
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) shape.to_object[i][j] = inv[i][j];
+        shape.to_object[i][3] = -(inv[i][0] * shape.center[0] + inv[i][1] * shape.center[1] +
+                                  inv[i][2] * shape.center[2]);
+    }
+    // The disk's normal is the inverse transpose of to_world applied to +z (Mitsuba's).
+    shape.normal = normalize(Vec3{float(inv[2][0]), float(inv[2][1]), float(inv[2][2])});
+    Geometry &g = scene.geometry;
+    g.analytic.push_back(uint32_t(g.shapes.size()));
     g.shapes.push_back(shape);
     return int(g.shapes.size()) - 1;
 }
@@ -715,6 +814,8 @@ PYBIND11_MODULE(_C, m) {
         .def("add_mesh", &add_mesh, py::arg("positions"), py::arg("faces"), py::arg("normals"),
              py::arg("uvs"), py::arg("bsdf"), py::arg("flip_normals"))
         .def("add_sphere", &add_sphere)
+        .def("add_disk_or_cylinder", &add_disk_or_cylinder)
+        .def("set_mesh_attribute", &set_mesh_attribute)
         .def("add_emitter", &add_emitter)
         .def("build", [](Scene &s) {
             py::gil_scoped_release release;
@@ -735,6 +836,7 @@ PYBIND11_MODULE(_C, m) {
           py::arg("seed"));
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
+    m.def("interact_rays", &interact_rays);
     m.def("sampler_points", &sampler_points, py::arg("camera"), py::arg("spp"), py::arg("seed"),
           py::arg("pixel"), py::arg("dims"));
     m.def("camera_rays", &camera_rays, py::arg("camera"), py::arg("positions"), py::arg("apertures"));

@@ -99,6 +99,16 @@ struct BSDFQuery {
     /// A texture input of this BSDF at the surface point.
     template <typename S>
     S texture(const TextureRef &t) const {
+        if (t.attribute >= 0) {  // (the loader checks that every shape using it has it)
+            const auto &g = ctx.scene.geometry;
+            const auto &shape = g.shapes[si.shape];
+            const auto &tri = g.triangles[si.tri];
+            uint32_t v[3] = {tri.v[0] - shape.vertex_begin, tri.v[1] - shape.vertex_begin,
+                             tri.v[2] - shape.vertex_begin};
+            return eval_mesh_attribute<S>(MeshAttribute(t.attribute), shape.attribute_param[t.attribute],
+                                          shape.attribute_channels[t.attribute], v,
+                                          si.tri - shape.tri_begin, si.b1, si.b2, ctx.params);
+        }
         return eval_texture<S>(t, ctx.textures, ctx.params, si.uv);
     }
     /// The roughness parameter, with its derivative (R = real_t<S>) or detached (float, read

@@ -2,7 +2,8 @@
 //
 // Build: a binary tree of BinaryNodes with the binned SAH (16 bins, leaves of at most 8
 // primitives), as in pbrt, except that a leaf costs by the packs of four triangles it needs,
-// since four are tested at once (Embree's block size), plus one pack per sphere.
+// since four are tested at once (Embree's block size), plus one pack per analytic shape
+// (sphere, disk, cylinder).
 //
 // Collapse: each binary inner node becomes a BVHNode whose children are found by repeatedly
 // opening the inner child of largest surface area until there are BVHWidth of them (Wald et
@@ -15,7 +16,7 @@
 //     starting at packs_[first];
 //   - nothing (fewer than BVHWidth children): EmptyChild, with an empty box no ray enters.
 // A PrimPack4 holds four consecutive primitives of a leaf: the vertices of its triangles,
-// again per lane, for the 4-wide watertight test, and the ids; sphere lanes are tested one
+// again per lane, for the 4-wide watertight test, and the ids; analytic lanes are tested one
 // at a time (in double precision).
 //
 // Traversal: a stack of (reference, entry distance). An inner node's hit children are visited
@@ -66,17 +67,49 @@ struct PrimInfo {
     Bounds bounds;
     Vec3 centroid;
     uint32_t id;
-    bool sphere;
+    bool analytic;
 };
+
+/// Bounds of an analytic shape. Disks and cylinders are bounded in double precision and
+/// rounded outwards (their intersection is computed in double).
+Bounds analytic_bounds(const Shape &s) {
+    Bounds b;
+    if (s.kind == ShapeKind::Sphere) {
+        Vec3 r{s.radius, s.radius, s.radius};
+        b.extend(s.center - r);
+        b.extend(s.center + r);
+        return b;
+    }
+    double lo[3], hi[3];
+    for (int i = 0; i < 3; ++i) {
+        double c = s.center[i];
+        if (s.kind == ShapeKind::Disk) {  // the box of the ellipse: c +- sqrt(a_i^2 + b_i^2)
+            double e = std::sqrt(double(s.local_x[i]) * s.local_x[i] + double(s.local_y[i]) * s.local_y[i]);
+            lo[i] = c - e;
+            hi[i] = c + e;
+        } else {  // the two end circles (Mitsuba's cylinder bbox)
+            double e = s.radius * std::sqrt(double(s.local_x[i]) * s.local_x[i] +
+                                            double(s.local_y[i]) * s.local_y[i]);
+            double end = c + double(s.local_z[i]) * s.length;
+            lo[i] = std::min(c, end) - e;
+            hi[i] = std::max(c, end) + e;
+        }
+    }
+    for (int i = 0; i < 3; ++i) {
+        b.lo[i] = next_float_down(float(lo[i]));
+        b.hi[i] = next_float_up(float(hi[i]));
+    }
+    return b;
+}
 
 constexpr int Bins = 16;
 constexpr int MaxLeafSize = 8;
 /// Build costs: a binary node and the test of a pack of four triangles.
 constexpr float TraversalCost = 1.f, PackCost = 4.f;
-/// Tests for n primitives of which `spheres` are spheres, in packs: triangles go four at a
-/// time, while each sphere costs about a pack (a double precision test of its own).
-inline float pack_tests(uint32_t n, uint32_t spheres) {
-    return float((n - spheres + 3) / 4 + spheres);
+/// Tests for n primitives of which `analytic` are analytic shapes, in packs: triangles go four at a
+/// time, while each analytic shape costs about a pack (a double precision test of its own).
+inline float pack_tests(uint32_t n, uint32_t analytic) {
+    return float((n - analytic + 3) / 4 + analytic);
 }
 
 struct Builder {
@@ -86,11 +119,11 @@ struct Builder {
     // Build the subtree over prims[begin, end) into nodes[index].
     void build(uint32_t index, uint32_t begin, uint32_t end) {
         Bounds bounds, centroids;
-        uint32_t spheres = 0;
+        uint32_t analytic = 0;
         for (uint32_t i = begin; i < end; ++i) {
             bounds.extend(prims[i].bounds);
             centroids.extend(prims[i].centroid);
-            spheres += prims[i].sphere;
+            analytic += prims[i].analytic;
         }
         BinaryNode &node = nodes[index];
         node.lo = bounds.lo;
@@ -109,35 +142,35 @@ struct Builder {
         for (int axis = 0; axis < 3; ++axis) {
             if (extent[axis] <= 0.f) continue;
             Bounds bin_bounds[Bins];
-            uint32_t bin_count[Bins] = {}, bin_spheres[Bins] = {};
+            uint32_t bin_count[Bins] = {}, bin_analytic[Bins] = {};
             float scale = Bins / extent[axis];
             for (uint32_t i = begin; i < end; ++i) {
                 int b = std::min(Bins - 1, int((prims[i].centroid[axis] - centroids.lo[axis]) * scale));
                 bin_bounds[b].extend(prims[i].bounds);
                 bin_count[b]++;
-                bin_spheres[b] += prims[i].sphere;
+                bin_analytic[b] += prims[i].analytic;
             }
             float right_area[Bins];
-            uint32_t right_count[Bins], right_spheres[Bins];
+            uint32_t right_count[Bins], right_analytic[Bins];
             Bounds acc;
             uint32_t n = 0, ns = 0;
             for (int b = Bins - 1; b > 0; --b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
-                ns += bin_spheres[b];
+                ns += bin_analytic[b];
                 right_area[b] = acc.area();
                 right_count[b] = n;
-                right_spheres[b] = ns;
+                right_analytic[b] = ns;
             }
             acc = Bounds();
             n = ns = 0;
             for (int b = 0; b < Bins - 1; ++b) {
                 acc.extend(bin_bounds[b]);
                 n += bin_count[b];
-                ns += bin_spheres[b];
+                ns += bin_analytic[b];
                 if (n == 0 || right_count[b + 1] == 0) continue;
                 float cost = acc.area() * pack_tests(n, ns) +
-                             right_area[b + 1] * pack_tests(right_count[b + 1], right_spheres[b + 1]);
+                             right_area[b + 1] * pack_tests(right_count[b + 1], right_analytic[b + 1]);
                 if (cost < best_cost) {
                     best_cost = cost;
                     best_axis = axis;
@@ -150,7 +183,7 @@ struct Builder {
             // All centroids coincide: split the list in the middle.
             return split(index, begin, begin + count / 2, end);
         }
-        float leaf_cost = PackCost * pack_tests(count, spheres);
+        float leaf_cost = PackCost * pack_tests(count, analytic);
         float area = std::max(bounds.area(), 1e-30f);
         float split_cost = TraversalCost + PackCost * best_cost / area;
         if (count <= MaxLeafSize && leaf_cost <= split_cost) return make_leaf();
@@ -200,7 +233,8 @@ struct Collapser {
                 uint32_t id = prims[n.offset + i + lane].id;
                 pack.prim[lane] = id;
                 if (!geometry.is_triangle(id)) {
-                    pack.spheres |= uint8_t(1 << lane);
+                    bool sphere = geometry.analytic_shape(id).kind == ShapeKind::Sphere;
+                    (sphere ? pack.spheres : pack.others) |= uint8_t(1 << lane);
                     continue;
                 }
                 pack.triangles |= uint8_t(1 << lane);
@@ -273,10 +307,7 @@ void BVH::build(const Geometry &geometry) {
         if (geometry.is_triangle(i)) {
             for (uint32_t v : geometry.triangles[i].v) b.extend(geometry.positions[v]);
         } else {
-            const Shape &s = geometry.sphere_shape(i);
-            Vec3 r{s.radius, s.radius, s.radius};
-            b.extend(s.center - r);
-            b.extend(s.center + r);
+            b = analytic_bounds(geometry.analytic_shape(i));
         }
         prims[i] = {b, b.center(), i, !geometry.is_triangle(i)};
     }
@@ -448,7 +479,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                 }
                 for (int mask = pack.spheres; mask; mask &= mask - 1) {
                     uint32_t prim = pack.prim[__builtin_ctz(mask)];
-                    const Shape &s = geometry_->sphere_shape(prim);
+                    const Shape &s = geometry_->analytic_shape(prim);
                     float t;
                     if (!intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t)) continue;
                     if (AnyHit) return true;
@@ -457,6 +488,11 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                     hit->t = t;
                     hit->prim = prim;
                     hit->u = hit->v = 0.f;
+                }
+                if (__builtin_expect(pack.others != 0, 0) && intersect_others(ray, pack, tmax, hit)) {
+                    if (AnyHit) return true;
+                    found = true;
+                    tmax = hit->t;
                 }
             }
         }
@@ -467,6 +503,22 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
         } while (stack[sp].t > tmax * BoxWiden);
         ref = stack[sp].ref;
     }
+}
+
+bool BVH::intersect_others(const Ray &ray, const PrimPack4 &pack, float tmax, Hit *hit) const {
+    bool found = false;
+    for (int mask = pack.others; mask; mask &= mask - 1) {
+        uint32_t prim = pack.prim[__builtin_ctz(mask)];
+        AnalyticHit h = intersect_disk_or_cylinder(ray, geometry_->analytic_shape(prim), ray.tmin, tmax);
+        if (!h.hit) continue;
+        found = true;
+        tmax = h.t;
+        hit->t = h.t;
+        hit->prim = prim;
+        hit->u = h.u;
+        hit->v = h.v;
+    }
+    return found;
 }
 
 bool BVH::intersect(const Ray &ray, Hit *hit) const { return traverse<false>(ray, hit); }

@@ -1,5 +1,6 @@
-// Bounding volume hierarchy over all primitives (triangles and spheres), built once at load
-// with the binned surface area heuristic, collapsed into an 8-wide tree when the build targets
+// Bounding volume hierarchy over all primitives (triangles and analytic
+// shapes: spheres, disks, cylinders), built once at
+// load with the binned surface area heuristic, collapsed into an 8-wide tree when the build targets
 // AVX (one slab test of eight child boxes), a 4-wide one with SSE otherwise, and leaves of
 // four-triangle packs (one SSE test). The layout is described in bvh.cpp.
 #pragma once
@@ -28,12 +29,13 @@ struct alignas(64) BVHNode {
 static_assert(sizeof(BVHNode) == 32 * BVHWidth, "a node should fill whole cache lines");
 
 /// Up to four primitives of a leaf: triangle vertices for the SSE test, the primitive ids,
-/// and which lanes hold triangles and spheres.
+/// and which lanes hold triangles and analytic shapes (spheres, disks, cylinders).
 struct PrimPack4 {
     TrianglePack4 tris;
     uint32_t prim[4];
     uint8_t triangles;  ///< bit mask of the lanes holding triangles
     uint8_t spheres;    ///< bit mask of the lanes holding spheres
+    uint8_t others;     ///< bit mask of the lanes holding other analytic shapes (disks, cylinders)
 };
 
 class BVH {
@@ -53,6 +55,8 @@ public:
 private:
     template <bool AnyHit>
     bool traverse(const Ray &ray, Hit *hit) const;
+    /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
+    bool intersect_others(const Ray &ray, const PrimPack4 &pack, float tmax, Hit *hit) const;
 
     const Geometry *geometry_ = nullptr;
     std::vector<BVHNode> nodes_;

@@ -4,6 +4,74 @@
 
 namespace rbpt {
 
+AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmin, float tmax) {
+    AnalyticHit out{0.f, 0.f, 0.f, false};
+    double o[3] = {ray.o.x, ray.o.y, ray.o.z}, lo[3], ld[3];
+    s.object_point(o, lo);
+    for (int i = 0; i < 3; ++i)
+        ld[i] = s.to_object[i][0] * ray.d.x + s.to_object[i][1] * ray.d.y + s.to_object[i][2] * ray.d.z;
+    if (s.kind == ShapeKind::Disk) {
+        if (ld[2] == 0.0) return out;
+        double t = -lo[2] / ld[2];
+        if (!(t > tmin && t < tmax)) return out;
+        double x = lo[0] + t * ld[0], y = lo[1] + t * ld[1];
+        if (x * x + y * y > 1.0) return out;
+        return {float(t), float(x), float(y), true};
+    }
+    // Cylinder, as Mitsuba: the nearest root within the length, else the farther one.
+    double A = ld[0] * ld[0] + ld[1] * ld[1];
+    double B = 2.0 * (ld[0] * lo[0] + ld[1] * lo[1]);
+    double C = lo[0] * lo[0] + lo[1] * lo[1] - double(s.radius) * s.radius;
+    if (A == 0.0) return out;
+    double disc = B * B - 4.0 * A * C;
+    if (disc < 0.0) return out;
+    double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+    double t0 = q / A, t1 = (q != 0.0) ? C / q : t0;
+    if (t0 > t1) std::swap(t0, t1);
+    for (double t : {t0, t1}) {
+        double z = lo[2] + t * ld[2];
+        if (t > tmin && t < tmax && z >= 0.0 && z <= s.length) return {float(t), 0.f, 0.f, true};
+    }
+    return out;
+}
+
+/// The surface interaction on a disk or cylinder: the hit point projected onto the surface in
+/// double precision, Mitsuba's uv and normals.
+[[gnu::noinline]] static void analytic_interaction(const Shape &shape, const Ray &ray, const Hit &hit,
+                                 SurfaceInteraction *si) {
+    double q[3];  // the hit in object space
+    if (shape.kind == ShapeKind::Disk) {
+        q[0] = hit.u;
+        q[1] = hit.v;
+        q[2] = 0.0;
+        si->n = shape.normal;
+        // uv = (r, phi / 2pi) in object space.
+        float r = std::sqrt(hit.u * hit.u + hit.v * hit.v);
+        float v = std::atan2(hit.v, hit.u) * InvTwoPi;
+        if (v < 0.f) v += 1.f;
+        si->uv = {r, v};
+    } else {
+        double p[3];
+        for (int i = 0; i < 3; ++i) p[i] = double(ray.o[i]) + double(ray.d[i]) * double(hit.t);
+        shape.object_point(p, q);
+        double rxy = std::sqrt(q[0] * q[0] + q[1] * q[1]);
+        double scale = rxy > 0.0 ? double(shape.radius) / rxy : 0.0;
+        q[0] *= scale;
+        q[1] *= scale;
+        float cos_phi = float(q[0] / shape.radius), sin_phi = float(q[1] / shape.radius);
+        si->n = normalize(shape.local_x * cos_phi + shape.local_y * sin_phi);
+        // uv = (phi / 2pi, z / length) in object space.
+        float phi = std::atan2(float(q[1]), float(q[0]));
+        if (phi < 0.f) phi += 2.f * Pi;
+        si->uv = {phi * InvTwoPi, float(q[2] / shape.length)};
+    }
+    si->p = shape.world_point(q);
+    // p is the surface point rounded once from double; the bound covers that and the double
+    // precision transforms (as the sphere's).
+    si->p_error = gamma(4) * vabs(si->p) + Vec3(1, 1, 1) * (gamma(4) * shape.radius);
+    if (shape.flip_normals) si->n = -si->n;
+}
+
 SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
     SurfaceInteraction si;
     if (!hit.valid()) return si;
@@ -15,6 +83,9 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         const Shape &shape = shapes[tri.shape];
         si.shape = int(tri.shape);
         float b1 = hit.u, b2 = hit.v, b0 = 1.f - b1 - b2;
+        si.tri = hit.prim;
+        si.b1 = b1;
+        si.b2 = b2;
         const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
         si.p = p0 * b0 + p1 * b1 + p2 * b2;
         si.p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
@@ -34,9 +105,12 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
             si.n = -si.n;
             ns = -ns;
         }
+    } else if (const Shape &shape = analytic_shape(hit.prim); shape.kind != ShapeKind::Sphere) {
+        si.shape = int(analytic[hit.prim - triangles.size()]);
+        analytic_interaction(shape, ray, hit, &si);
+        ns = si.n;
     } else {
-        const Shape &shape = sphere_shape(hit.prim);
-        si.shape = int(spheres[hit.prim - triangles.size()]);
+        si.shape = int(analytic[hit.prim - triangles.size()]);
         // Re-project the hit onto the sphere in double precision, so that p is the sphere's
         // point up to the final rounding (float arithmetic far from the origin is not).
         double r[3], len2 = 0.0;
@@ -96,6 +170,25 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         ds.n = shape.has_normals ? normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b.x +
                                              normals[tri.v[2]] * b.y)
                                  : normalize(cross(p1 - p0, p2 - p0));
+        if (shape.flip_normals) ds.n = -ds.n;
+        ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
+    } else if (shape.kind == ShapeKind::Disk || shape.kind == ShapeKind::Cylinder) {
+        // Uniform in area (Mitsuba's sample_position), converted to solid angle.
+        double q[3];
+        if (shape.kind == ShapeKind::Disk) {
+            Vec2 d = warp::square_to_uniform_disk_concentric(u);
+            q[0] = d.x;
+            q[1] = d.y;
+            q[2] = 0.0;
+            ds.n = shape.normal;
+        } else {
+            float phi = 2.f * Pi * u.y, c = std::cos(phi), s = std::sin(phi);
+            q[0] = double(c) * shape.radius;
+            q[1] = double(s) * shape.radius;
+            q[2] = double(u.x) * shape.length;
+            ds.n = normalize(shape.local_x * c + shape.local_y * s);
+        }
+        ds.p = shape.world_point(q);
         if (shape.flip_normals) ds.n = -ds.n;
         ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
     } else {
@@ -158,6 +251,14 @@ void Geometry::prepare() {
     for (Shape &shape : shapes) {
         if (shape.kind == ShapeKind::Sphere) {
             shape.area = 4.f * Pi * shape.radius * shape.radius;
+            continue;
+        }
+        if (shape.kind == ShapeKind::Disk) {  // an ellipse in general: pi |dp/dx x dp/dy|
+            shape.area = Pi * norm(cross(shape.local_x, shape.local_y));
+            continue;
+        }
+        if (shape.kind == ShapeKind::Cylinder) {
+            shape.area = 2.f * Pi * shape.radius * shape.length;
             continue;
         }
         shape.tri_cdf.assign(shape.tri_count + 1, 0.f);

@@ -1,5 +1,6 @@
-// Shapes: triangle meshes and analytic spheres. Ray-primitive intersection, the surface
-// interaction at a hit, and sampling points on shapes for area emitters.
+// Shapes: triangle meshes and the analytic sphere, disk and cylinder. Ray-primitive
+// intersection, the surface interaction at a hit, and sampling points on shapes for area
+// emitters.
 #pragma once
 
 #include <emmintrin.h>  // SSE2, part of the x86-64 baseline
@@ -11,7 +12,7 @@
 
 namespace rbpt {
 
-enum class ShapeKind { Mesh, Sphere };
+enum class ShapeKind { Mesh, Sphere, Disk, Cylinder };
 
 struct Shape {
     ShapeKind kind = ShapeKind::Mesh;
@@ -21,12 +22,39 @@ struct Shape {
     float area = 0.f;
     // Mesh: a range of Geometry::triangles and a CDF over their areas for sampling.
     uint32_t tri_begin = 0, tri_count = 0;
+    uint32_t vertex_begin = 0, vertex_count = 0;  ///< its vertices in Geometry::positions
+    /// Parameters of its `vertex_color` and `face_color` (MeshAttribute), -1 if absent.
+    int attribute_param[2] = {-1, -1};
+    int attribute_channels[2] = {0, 0};
     bool has_normals = false, has_uvs = false;
     std::vector<float> tri_cdf;
     // Sphere: centre, radius and the rotation to its local frame (for uv).
+    // Disk: object-to-world affine map, p = center + local_x x + local_y y + local_z z (the
+    //   columns of to_world's linear part), from the unit disk at z = 0; `normal` is its
+    //   (unflipped) world normal.
+    // Cylinder: axis from `center` along the unit local_z, of `length` and `radius`;
+    //   local_x, local_y (unit) fix the origin of the angle for uv.
     Vec3 center;
     float radius = 1.f;
     Vec3 local_x{1, 0, 0}, local_y{0, 1, 0}, local_z{0, 0, 1};
+    float length = 1.f;
+    Vec3 normal{0, 0, 1};
+    double to_object[3][4] = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 0}};  ///< disk, cylinder
+
+    /// `p` in the shape's object space (disk, cylinder), in double precision.
+    void object_point(const double p[3], double out[3]) const {
+        for (int i = 0; i < 3; ++i)
+            out[i] = to_object[i][0] * p[0] + to_object[i][1] * p[1] + to_object[i][2] * p[2] +
+                     to_object[i][3];
+    }
+    /// A point of object space (disk, cylinder) in world space, rounded once to float.
+    Vec3 world_point(const double q[3]) const {
+        Vec3 p;
+        for (int i = 0; i < 3; ++i)
+            p[i] = float(double(center[i]) + double(local_x[i]) * q[0] + double(local_y[i]) * q[1] +
+                         double(local_z[i]) * q[2]);
+        return p;
+    }
 };
 
 struct Triangle {
@@ -53,6 +81,8 @@ struct SurfaceInteraction {
     Vec2 uv;
     Vec3 wi;       ///< direction towards the ray origin, in the shading frame
     int shape = -1;
+    uint32_t tri = ~0u;      ///< triangle hit (meshes), for mesh attributes
+    float b1 = 0.f, b2 = 0.f;  ///< its barycentrics of vertices 1 and 2
 
     Vec3 to_local(const Vec3 &v) const { return sh_frame.to_local(v); }
     Vec3 to_world(const Vec3 &v) const { return sh_frame.to_world(v); }
@@ -232,18 +262,31 @@ inline bool intersect_sphere(const Ray &ray, const Vec3 &center, float radius, f
     return false;
 }
 
-/// Scene geometry: global vertex arrays, triangles, spheres and the shapes they belong to.
+/// A hit on a disk or cylinder: t, and for disks the object-space x and y of the hit.
+struct AnalyticHit {
+    float t, u, v;
+    bool hit;
+};
+
+/// Ray intersection with a disk (the unit disk at z = 0 in object space) or a cylinder
+/// (radius `radius` around the object-space z axis, z in [0, length], no caps), in double
+/// precision. Out of line (shapes.cpp), called from BVH::intersect_others.
+AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmin,
+                                                     float tmax);
+
+/// Scene geometry: global vertex arrays, triangles, analytic primitives and the shapes they
+/// belong to.
 struct Geometry {
     std::vector<Vec3> positions, normals;
     std::vector<Vec2> uvs;
     std::vector<Triangle> triangles;
-    std::vector<uint32_t> spheres;  ///< shape index of each sphere primitive
+    std::vector<uint32_t> analytic;  ///< shape index of each analytic primitive (sphere, disk, cylinder)
     std::vector<Shape> shapes;
 
-    uint32_t primitive_count() const { return uint32_t(triangles.size() + spheres.size()); }
+    uint32_t primitive_count() const { return uint32_t(triangles.size() + analytic.size()); }
     bool is_triangle(uint32_t prim) const { return prim < triangles.size(); }
-    const Shape &sphere_shape(uint32_t prim) const {
-        return shapes[spheres[prim - triangles.size()]];
+    const Shape &analytic_shape(uint32_t prim) const {
+        return shapes[analytic[prim - triangles.size()]];
     }
 
     /// Complete a BVH hit into a surface interaction.

@@ -32,6 +32,9 @@ struct Bitmap {
     }
 };
 
+/// Mitsuba's mesh_attribute texture: which attribute of the mesh hit it reads.
+enum class MeshAttribute { VertexColor = 0, FaceColor = 1 };
+
 /// Mitsuba's `checkerboard`: color0 where frac(u) > 1/2 and frac(v) > 1/2 agree, else color1.
 struct Checkerboard {
     int color0 = -1, color1 = -1;  ///< constant parameters (RGB or scalar)
@@ -54,12 +57,30 @@ struct Texture {
     }
 };
 
-/// Reference to a material input: a constant parameter, or a texture.
+/// Reference to a material input: a constant parameter, a texture, or a mesh attribute.
 struct TextureRef {
-    int param = -1;    ///< constant value (when texture < 0)
-    int texture = -1;  ///< index into Scene::textures
-    bool valid() const { return param >= 0 || texture >= 0; }
+    int param = -1;      ///< constant value (when texture < 0 and attribute < 0)
+    int texture = -1;    ///< index into Scene::textures
+    int attribute = -1;  ///< a MeshAttribute, read from the shape hit (Shape::attribute_param)
+    bool valid() const { return param >= 0 || texture >= 0 || attribute >= 0; }
 };
+
+/// A mesh attribute at a hit: a vertex attribute interpolated with the barycentrics (b1, b2)
+/// of vertices v[1], v[2] (Mitsuba's eval_attribute), or the attribute of face `face`. The
+/// attribute parameter holds `channels` (1 or 3) values per vertex or face; the lookup is one
+/// P::bilinear call, so autodiff types record it as one node.
+template <typename S, typename P>
+S eval_mesh_attribute(MeshAttribute which, int param, int channels, const uint32_t v[3],
+                      uint32_t face, float b1, float b2, const P &params) {
+    if (which == MeshAttribute::FaceColor) {
+        int64_t index[4] = {int64_t(face), 0, 0, 0};
+        float weight[4] = {1.f, 0.f, 0.f, 0.f};
+        return params.bilinear(param, channels, index, weight, 1);
+    }
+    int64_t index[4] = {int64_t(v[0]), int64_t(v[1]), int64_t(v[2]), 0};
+    float weight[4] = {1.f - b1 - b2, b1, b2, 0.f};
+    return params.bilinear(param, channels, index, weight, 3);
+}
 
 /// Bitmap lookup at uv. A bilinear lookup is one call to P::bilinear so that autodiff types
 /// can record it as one node.

@@ -18,10 +18,13 @@ from torch_rbpt.meshes import (
     load_mesh,
     load_obj,
     load_ply,
+    load_serialized,
     rectangle,
+    write_serialized,
 )
 
 SCENES = Path(__file__).resolve().parents[2] / "shared" / "scenes"
+SHAPE_REFS = Path(__file__).resolve().parent / "references" / "shapes"
 CBOX = SCENES / "cbox" / "meshes"
 needs_scenes = pytest.mark.skipif(not SCENES.is_dir(), reason=f"{SCENES} not present")
 
@@ -650,3 +653,111 @@ def test_ply_face_indices_declared_as_a_scalar(tmp_path):
     path.write_bytes(header + body)
     with pytest.raises(MeshError, match=r"scalar_faces\.ply: property 'vertex_indices' of element 'face' is a scalar"):
         load_ply(path)
+
+
+# ---------------------------------------------------------------------------------------
+# Mitsuba's serialized format
+# ---------------------------------------------------------------------------------------
+
+
+def _serialized_loads():
+    import json
+    return json.loads((SHAPE_REFS / "serialized_mitsuba.json").read_text())
+
+
+def test_serialized_matches_mitsuba():
+    """Every mesh of the committed files (format versions 3 and 4, float32 and float64), with
+    and without face_normals and to_world, loads as Mitsuba 3.9.1 loaded it
+    (make_shape_references.py): positions, faces and uvs bitwise, normals to 1e-6."""
+    doc = _serialized_loads()
+    matrix = np.array(doc["to_world"]["matrix"])
+    assert len(doc["loads"]) == 24
+    for case in doc["loads"]:
+        mesh = load_serialized(SHAPE_REFS / case["file"], case["shape_index"],
+                               face_normals=case["face_normals"])
+        if case["to_world"]:
+            mesh = mesh.transformed(matrix)
+        ref = case["arrays"]
+        what = f"{case['file']} #{case['shape_index']} face_normals={case['face_normals']} to_world={case['to_world']}"
+        assert np.array_equal(mesh.positions.ravel(), np.float32(ref["vertex_positions"])), what
+        assert np.array_equal(mesh.faces.ravel(), ref["faces"]), what
+        assert (mesh.normals is not None) == case["has_normals"], what
+        if case["has_normals"]:
+            np.testing.assert_allclose(mesh.normals.ravel(), ref["vertex_normals"], atol=1e-6, err_msg=what)
+        assert (mesh.uvs is not None) == case["has_uvs"], what
+        if case["has_uvs"]:
+            assert np.array_equal(mesh.uvs.ravel(), np.float32(ref["vertex_texcoords"])), what
+
+
+def test_serialized_round_trip_and_double_rounding(tmp_path):
+    rng = np.random.default_rng(3)
+    positions = rng.normal(size=(7, 3))
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 6], [6, 0, 3]])
+    normals = rng.normal(size=(7, 3))
+    uvs = rng.uniform(size=(7, 2))
+    for version in (3, 4):
+        for double in (False, True):
+            path = tmp_path / f"m{version}{int(double)}.serialized"
+            write_serialized(path, [dict(positions=positions[:3], faces=[[0, 1, 2]]),
+                                    dict(positions=positions, faces=faces, normals=normals,
+                                         uvs=uvs, colors=uvs[:, [0, 1, 1]], name="b")],
+                             version=version, double=double)
+            m = load_serialized(path, 1)
+            # float64 values are rounded to nearest float32, as Mitsuba's (float) cast
+            assert np.array_equal(m.positions, positions.astype(np.float32))
+            assert np.array_equal(m.faces, faces)
+            assert np.array_equal(m.uvs, uvs.astype(np.float32))
+            np.testing.assert_allclose(m.normals, normals / np.linalg.norm(normals, axis=1, keepdims=True), atol=1e-6)
+            first = load_serialized(path, 0)
+            assert first.face_count == 1 and first.computed_normals
+
+
+@pytest.mark.parametrize("damage, pattern", [
+    (lambda b: b"\x1d" + b[1:], "not a Mitsuba serialized file"),
+    (lambda b: b[:2] + b"\x05\x00" + b[4:], "version 5 is not supported"),
+    (lambda b: b[:4] + b"\x00" * 12 + b[16:], "corrupt zlib stream"),
+    (lambda b: b[:3], "only 3 bytes"),
+    (lambda b: b[:20] + b[-4:], "truncated"),
+])
+def test_serialized_errors_name_the_file(tmp_path, damage, pattern):
+    path = tmp_path / "m.serialized"
+    write_serialized(path, [dict(positions=np.eye(3), faces=[[0, 1, 2]])])
+    path.write_bytes(damage(path.read_bytes()))
+    with pytest.raises(MeshError, match=pattern) as info:
+        load_serialized(path)
+    assert "m.serialized" in str(info.value)
+
+
+def test_serialized_shape_index_range_and_bad_indices(tmp_path):
+    path = tmp_path / "m.serialized"
+    write_serialized(path, [dict(positions=np.eye(3), faces=[[0, 1, 2]]),
+                            dict(positions=np.eye(3), faces=[[0, 1, 3]])])
+    with pytest.raises(MeshError, match="shape_index 2 is out of range .* holds 2 meshes"):
+        load_serialized(path, 2)  # Mitsuba 3.9.1 fails too ("read 4 out of 8 bytes")
+    with pytest.raises(MeshError, match=r"triangle 0 has vertex indices \[0, 1, 3\]"):
+        load_serialized(path, 1)
+    with pytest.raises(MeshError, match="not found"):
+        load_serialized(tmp_path / "missing.serialized")
+
+
+def test_ply_colors_become_mesh_attributes_like_mitsuba(tmp_path):
+    """Mitsuba 3.9.1: vertex (red, green, blue) or (r, g, b) -> vertex_color, face colours ->
+    face_color, alpha adds a channel, 8-bit values are kept as stored (255, not 1)."""
+    vertex = np.empty(6, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"),
+                                ("blue", "u1"), ("alpha", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = PLY_POSITIONS.T
+    vertex["red"], vertex["green"], vertex["blue"], vertex["alpha"] = 255, 0, 128, 7
+    face = np.empty(2, dtype=[("vertex_indices", "O"), ("r", "f4"), ("g", "f4"), ("b", "f4")])
+    face["vertex_indices"] = [np.array([0, 1, 2, 3], np.int32), np.array([0, 3, 4], np.int32)]
+    face["r"], face["g"], face["b"] = [0.1, 0.2], [0.3, 0.4], [0.5, 0.6]
+    path = tmp_path / "c.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")]).write(str(path))
+    mesh = load_ply(path)
+    assert np.array_equal(mesh.attributes["vertex_color"], np.tile([255, 0, 128, 7], (6, 1)))
+    # the quad's two triangles share its colour (polygons are fan-triangulated)
+    np.testing.assert_allclose(mesh.attributes["face_color"],
+                               [[0.1, 0.3, 0.5], [0.1, 0.3, 0.5], [0.2, 0.4, 0.6]], rtol=1e-6)
+    moved = mesh.transformed(np.diag([2.0, 1, 1, 1]))
+    assert moved.attributes["face_color"] is mesh.attributes["face_color"]
+    assert "vertex_color" not in load_ply(write_ply(tmp_path / "plain.ply", TRIS)).attributes

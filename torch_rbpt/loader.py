@@ -23,9 +23,10 @@ from .transform import Transform, as_matrix
 CATEGORY = {
     "diffuse": "bsdf", "twosided": "bsdf", "conductor": "bsdf", "roughconductor": "bsdf",
     "dielectric": "bsdf", "roughplastic": "bsdf",
-    "obj": "shape", "ply": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape",
+    "obj": "shape", "ply": "shape", "serialized": "shape", "rectangle": "shape", "cube": "shape", "sphere": "shape", "disk": "shape", "cylinder": "shape",
+    "shapegroup": "shape", "instance": "shape",
     "area": "emitter", "point": "emitter", "constant": "emitter",
-    "bitmap": "texture", "checkerboard": "texture",
+    "bitmap": "texture", "checkerboard": "texture", "mesh_attribute": "texture",
     "perspective": "sensor", "hdrfilm": "film", "box": "rfilter", "tent": "rfilter",
     "gaussian": "rfilter", "mitchell": "rfilter", "catmullrom": "rfilter", "lanczos": "rfilter",
     "orthographic": "sensor", "thinlens": "sensor",
@@ -45,14 +46,20 @@ PROPERTIES = {
                      "int_ior", "ext_ior", "nonlinear", "sample_visible"},
     "obj": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
     "ply": {"filename", "face_normals", "flip_normals", "flip_tex_coords", "to_world"},
+    "serialized": {"filename", "shape_index", "face_normals", "flip_normals", "to_world"},
     "rectangle": {"flip_normals", "to_world"},
     "cube": {"flip_normals", "to_world"},
     "sphere": {"center", "radius", "flip_normals", "to_world"},
+    "disk": {"flip_normals", "to_world"},
+    "cylinder": {"p0", "p1", "radius", "flip_normals", "to_world"},
+    "shapegroup": set(),
+    "instance": {"to_world"},
     "area": {"radiance"},
     "point": {"position", "intensity", "to_world"},
     "constant": {"radiance"},
     "bitmap": {"filename", "raw", "filter_type", "wrap_mode", "to_uv"},
     "checkerboard": {"color0", "color1", "to_uv"},
+    "mesh_attribute": {"name", "scale"},
     "perspective": {"fov", "fov_axis", "focal_length", "near_clip", "far_clip", "focus_distance",
                     "to_world", "principal_point_offset_x", "principal_point_offset_y"},
     "hdrfilm": {"width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
@@ -85,6 +92,9 @@ IOR = {
     "sodium chloride": 1.544, "amber": 1.55, "pet": 1.5750, "diamond": 2.419,
 }
 
+
+# Mesh attributes a mesh_attribute texture can read, in the order of the core's MeshAttribute.
+MESH_ATTRIBUTES = ("vertex_color", "face_color")
 
 GEOMETRY = ("geometry is fixed at load: torch_rbpt differentiates materials and emission, not "
             "shapes (visibility gradients are out of scope)")
@@ -137,6 +147,11 @@ class _Builder:
         self.built_textures: dict[int, int] = {}
         self.built_emitters: dict[int, int] = {}  # id(area emitter node) -> radiance parameter
         self.attached: dict[int, str] = {}  # id(area emitter node) -> key of its shape
+        self.built_shapes: set[int] = set()  # id(node) of shapes built (shapegroup members)
+        self.default_bsdfs: dict[int, dict] = {}  # id(shape node) -> its default BSDF
+        self.bsdf_attributes: set = set()  # mesh attributes read by the BSDF being built
+        self.attributes_of_bsdf: dict[int, set] = {}  # native BSDF index -> attributes it reads
+        self.attribute_params: dict = {}  # (id(shape node), name) -> param index
         for key, value in scene.items():
             if _is_plugin(value) and value["type"] != "ref":
                 self.objects[value.get("__id__", key)] = value
@@ -326,6 +341,8 @@ class _Builder:
             value = self.deref(value, "texture", owner)
         if isinstance(value, dict) and value.get("type") in ("bitmap", "checkerboard"):
             return -1, self.build_texture(value, key)
+        if isinstance(value, dict) and value.get("type") == "mesh_attribute":
+            return self.mesh_attribute(owner, value)
         return self.constant(owner, name, key, value), -1
 
     def constant(self, owner, name: str, key: str, value) -> int:
@@ -353,6 +370,17 @@ class _Builder:
         except (TypeError, ValueError, OverflowError):
             self.fail(owner, f"{owner['type']}: '{name}' must be a number, rgb, spectrum or texture, got {value!r}")
         return self.add_param(f"{key}.value", [v])
+
+    def mesh_attribute(self, owner, node) -> tuple:
+        """Mitsuba's mesh_attribute texture, as a BSDF input: (param, bitmap, attribute)."""
+        self.check(node, "texture")
+        if owner["type"] != "diffuse":
+            self.fail(node, f"mesh_attribute: supported as a diffuse reflectance, not in a {owner['type']}")
+        name = self.string(node, "name", "", ("vertex_color", "face_color"))
+        if self.number(node, "scale", 1.0) != 1.0:
+            self.fail(node, "mesh_attribute: only scale = 1 is supported")
+        self.bsdf_attributes.add(name)
+        return -1, -1, MESH_ATTRIBUTES.index(name)
 
     def spectrum(self, node, name: str, emitted: bool) -> np.ndarray:
         """A `spectrum` dict ("value": a number or [[wavelength, value], ...], or "filename")
@@ -431,6 +459,13 @@ class _Builder:
     def bsdf(self, node, key: str, twosided: bool = False) -> int:
         if id(node) in self.built_bsdfs:
             return self.built_bsdfs[id(node)]
+        outer, self.bsdf_attributes = self.bsdf_attributes, set()
+        index = self.build_bsdf(node, key, twosided)
+        self.attributes_of_bsdf[index] = self.attributes_of_bsdf.get(index, set()) | self.bsdf_attributes
+        self.bsdf_attributes = outer | self.bsdf_attributes
+        return index
+
+    def build_bsdf(self, node, key: str, twosided: bool) -> int:
         t = node["type"]
         self.check(node, "bsdf", nested=("bsdf", "texture") if t == "twosided" else ("texture",))
         if t == "twosided":
@@ -483,9 +518,48 @@ class _Builder:
 
     # -- shapes and emitters -------------------------------------------------------------------
 
-    def shape(self, node, key: str) -> None:
-        self.check(node, "shape", nested=("bsdf", "emitter"))
+    def shapegroup(self, node, key: str) -> None:
+        """Validate a shapegroup (Mitsuba: no emitters, no nested groups). Its shapes are built
+        by each instance that references it."""
+        self.check(node, "shape", nested=("shape",))
+        for _, child, _ in self.nested(node, "shape"):
+            if child["type"] in ("shapegroup", "instance"):
+                self.fail(child, f"shapegroup: a {child['type']} cannot be nested in a shapegroup "
+                                 f"(Mitsuba: 'Nested ShapeGroup is not permitted')")
+            if self.nested(child, "emitter"):
+                self.fail(child, "shapegroup: shapes in a shapegroup cannot have emitters "
+                                 "(Mitsuba: 'Instancing of emitters is not supported')")
+
+    def instance(self, node, key: str) -> None:
+        """Mitsuba's `instance` of a shapegroup, flattened: each shape of the group is added
+        again under instance.to_world @ its own to_world. The group's shapes keep the keys
+        `<group id>.<shape key>...` (BSDFs shared by all instances), the instance has
+        `<key>.to_world` (read-only, like all geometry)."""
+        self.check(node, "shape", nested=("shape",))
+        groups = self.nested(node, "shape")
+        if len(groups) != 1 or groups[0][1]["type"] != "shapegroup":
+            self.fail(node, "instance: needs exactly one shapegroup (Mitsuba: 'Only a shapegroup "
+                            "can be specified in an instance')")
+        group = groups[0][1]
+        self.shapegroup(group, group.get("__id__", "shapegroup"))
+        gkey = group.get("__id__", f"{key}.shapegroup")
+        matrix = self.matrix(node)
+        self.add_fixed(f"{key}.to_world", matrix, GEOMETRY)
+        for ckey, child, _ in self.nested(group, "shape"):
+            self.shape(child, f"{gkey}.{child.get('__id__', ckey)}", instance=matrix)
+
+    def shape(self, node, key: str, instance=None) -> None:
+        """Add a shape; `instance` (4x4) is the to_world of an instance of the shapegroup that
+        holds it, applied after the shape's own to_world. Keys are registered once, with the
+        shape's values in its group's space, as Mitsuba's."""
         t = node["type"]
+        if t == "shapegroup":
+            return self.shapegroup(node, key)
+        if t == "instance":
+            return self.instance(node, key)
+        self.check(node, "shape", nested=("bsdf", "emitter"))
+        first = instance is None or id(node) not in self.built_shapes
+        self.built_shapes.add(id(node))
         bsdfs = self.nested(node, "bsdf")
         if len(bsdfs) > 1:
             self.fail(node, f"{t}: a shape takes one BSDF, got {len(bsdfs)}")
@@ -493,30 +567,62 @@ class _Builder:
             name, child, referenced = bsdfs[0]
             bsdf = self.bsdf(child, f"{key}.bsdf")
         else:  # Mitsuba's default: a diffuse BSDF of reflectance 0.5
-            bsdf = self.bsdf({"type": "diffuse", "__where__": _where(node)}, f"{key}.bsdf")
+            default = self.default_bsdfs.setdefault(id(node), {"type": "diffuse", "__where__": _where(node)})
+            bsdf = self.bsdf(default, f"{key}.bsdf")
         flip = self.number(node, "flip_normals", False, bool)
         to_world = self.matrix(node)
+        self.build_shape(node, key, t, bsdf, flip, to_world, instance, first)
+
+    def build_shape(self, node, key, t, bsdf, flip, to_world, instance, first) -> None:
+        inst = np.eye(4) if instance is None else instance
+        mesh = None
+
+        def fixed(name, value):  # a group's shape registers its keys at its first instance
+            if first:
+                self.add_fixed(f"{key}.{name}", value, GEOMETRY)
+
         if t == "sphere":
             center = self.vector(node, "center", [0, 0, 0])
             radius = self.number(node, "radius", 1.0)
             m = to_world @ Transform.translate(center).matrix @ Transform.scale(radius).matrix
+            fixed("to_world", m)
+            m = inst @ m
             axes = m[:3, :3]
             scales = np.linalg.norm(axes, axis=0)
             if not np.allclose(scales, scales[0], rtol=1e-4) or scales[0] <= 0:
-                self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})")
+                self.fail(node, f"sphere: to_world must scale uniformly (got axis scales {scales})"
+                                + ("; an instance's to_world included (Mitsuba renders an ellipsoid)"
+                                   if instance is not None else ""))
             frame = (axes / scales).T.tolist()
             shape = self.add_native(node, "sphere", m[:3, 3].tolist(), float(scales[0]), frame, bsdf, flip)
-            self.add_fixed(f"{key}.to_world", m, GEOMETRY)
+        elif t == "disk":
+            fixed("to_world", to_world @ np.diag([1, 1, -1 if flip else 1, 1]))
+            to_world = inst @ to_world
+            axes = to_world[:3, :3].T.astype(np.float32)
+            radius = float(np.linalg.norm(axes[:2], axis=1).max())  # bounds p's rounding error
+            shape = self.add_native(node, "disk_or_cylinder", "disk", to_world[:3, 3].tolist(),
+                                    axes.tolist(), radius, 1.0, bsdf, flip)
+        elif t == "cylinder":
+            fixed("to_world", self.cylinder_frame(node, to_world)[4])
+            center, axes, radius, length, _ = self.cylinder_frame(node, inst @ to_world)
+            shape = self.add_native(node, "disk_or_cylinder", "cylinder", center, axes, radius,
+                                    length, bsdf, flip)
         else:
-            if t in ("obj", "ply"):
+            if t in ("obj", "ply", "serialized"):
                 if "filename" not in node:
                     self.fail(node, f"{t}: missing parameter 'filename'")
                 path = self.resolve(node, node["filename"])
                 face_normals = self.number(node, "face_normals", False, bool)
-                flip_tex = self.number(node, "flip_tex_coords", t == "obj", bool)
                 try:
-                    mesh = (meshes.load_obj if t == "obj" else meshes.load_ply)(
-                        path, face_normals=face_normals, flip_tex_coords=flip_tex)
+                    if t == "serialized":
+                        index = self.number(node, "shape_index", 0, int)
+                        if index < 0:
+                            self.fail(node, f"serialized: shape_index must be >= 0, got {index}")
+                        mesh = meshes.load_serialized(path, index, face_normals=face_normals)
+                    else:
+                        flip_tex = self.number(node, "flip_tex_coords", t == "obj", bool)
+                        mesh = (meshes.load_obj if t == "obj" else meshes.load_ply)(
+                            path, face_normals=face_normals, flip_tex_coords=flip_tex)
                 except meshes.MeshError as e:
                     self.fail(node, f"{t}: {e}")
             else:
@@ -526,13 +632,22 @@ class _Builder:
             except meshes.MeshError as e:  # e.g. a singular to_world
                 self.fail(node, f"{t}: to_world: {e}")
             if t == "rectangle":
-                self.add_fixed(f"{key}.to_world", to_world, GEOMETRY)
+                fixed("to_world", to_world)
             else:
-                self.add_fixed(f"{key}.vertex_positions", mesh.positions.reshape(-1), GEOMETRY)
+                fixed("vertex_positions", mesh.positions.reshape(-1))
+            if instance is not None:
+                # An instance transforms the group's mesh, normals by the inverse transpose
+                # (computed normals are not recomputed, as Mitsuba's instance)
+                mesh.computed_normals = False
+                try:
+                    mesh = mesh.transformed(instance)
+                except meshes.MeshError as e:
+                    self.fail(node, f"{t}: instance to_world: {e}")
             shape = self.add_native(node, "mesh",
                 torch.from_numpy(mesh.positions), torch.from_numpy(mesh.faces.astype(np.int64)),
                 None if mesh.normals is None else torch.from_numpy(mesh.normals),
                 None if mesh.uvs is None else torch.from_numpy(mesh.uvs), bsdf, flip)
+        self.mesh_attributes(node, key, t, bsdf, shape, mesh)
         emitters = self.nested(node, "emitter")
         if len(emitters) > 1:
             self.fail(node, f"{t}: a shape takes one emitter, got {len(emitters)}")
@@ -558,6 +673,66 @@ class _Builder:
                 self.fail(node, "area: textured radiance is not supported")
             self.built_emitters[id(node)] = param
         return self.built_emitters[id(node)]
+
+    def mesh_attributes(self, node, key, t, bsdf, shape, mesh) -> None:
+        """Register a mesh's vertex_color / face_color (keys `<shape>.vertex_color`, flat as
+        Mitsuba's, differentiable) and check that it has those its BSDF reads."""
+        have = {} if mesh is None else mesh.attributes
+        for which, name in enumerate(MESH_ATTRIBUTES):
+            values = have.get(name)
+            if values is None:
+                continue
+            pkey = (id(node), name)
+            if pkey not in self.attribute_params:  # once per shape, shared by instances
+                self.attribute_params[pkey] = self.add_param(f"{key}.{name}", values.reshape(-1))
+            if values.shape[1] in (1, 3):
+                self.native.set_mesh_attribute(shape, which, self.attribute_params[pkey], values.shape[1])
+        for name in sorted(self.attributes_of_bsdf.get(bsdf, ())):
+            if name not in have:
+                self.fail(node, f"{t}: its BSDF reads the mesh attribute '{name}', which this shape "
+                                f"does not have (PLY colours r, g, b or red, green, blue give "
+                                f"vertex_color or face_color)")
+            if have[name].shape[1] not in (1, 3):
+                self.fail(node, f"{t}: mesh attribute '{name}' has {have[name].shape[1]} channels; "
+                                f"a BSDF input needs 1 or 3 (Mitsuba: 'requested but had size 4')")
+
+    def cylinder_frame(self, node, to_world: np.ndarray):
+        """Mitsuba's cylinder: to_world @ translate(p0) @ to_frame(Frame(unit(p1 - p0))) @
+        scale(radius, radius, |p1 - p0|), split by polar decomposition into a rotation (the
+        axes) and the radius and length. Returns (p0 in world, axes as rows, radius, length,
+        the whole matrix: Mitsuba's `to_world` key).
+        Shear, a non-uniform scale of the cross-section and mirroring are refused: Mitsuba
+        3.9.1 warns and then renders a shape whose silhouette does not match its own surface
+        (or nothing)."""
+        p0 = self.vector(node, "p0", [0, 0, 0])
+        p1 = self.vector(node, "p1", [0, 0, 1])
+        radius = self.number(node, "radius", 1.0)
+        axis = p1 - p0
+        length = float(np.linalg.norm(axis))
+        if not (radius > 0 and length > 0):
+            self.fail(node, f"cylinder: radius and |p1 - p0| must be positive, got {radius} and {length}")
+        n = axis / length
+        sign = float(np.copysign(1.0, n[2]))  # Mitsuba's coordinate_system (Duff et al. 2017)
+        a = -1.0 / (sign + n[2])
+        b = n[0] * n[1] * a
+        s_axis = np.array([1 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
+        t_axis = np.array([b, sign + n[1] * n[1] * a, -n[1]])
+        m = to_world[:3, :3] @ np.column_stack([s_axis, t_axis, n]) @ np.diag([radius, radius, length])
+        u, sigma, vt = np.linalg.svd(m)
+        q = u @ vt
+        sym = vt.T @ np.diag(sigma) @ vt
+        r, l = sym[0, 0], sym[2, 2]
+        if np.linalg.det(m) <= 0:
+            self.fail(node, "cylinder: to_world must not mirror (Mitsuba 3.9.1 renders nothing)")
+        off = np.abs(sym - np.diag(np.diag(sym))).max()
+        if off > 1e-5 * max(r, l) or abs(sym[0, 0] - sym[1, 1]) > 1e-5 * r:
+            self.fail(node, "cylinder: to_world must scale the cross-section uniformly and not shear "
+                            f"(scales {np.diag(sym).round(6).tolist()}); Mitsuba 3.9.1 warns and "
+                            f"renders a shape inconsistent with its own surface")
+        center = (to_world @ np.append(p0, 1.0))[:3]
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = m, center
+        return center.tolist(), q.T.tolist(), float(r), float(l), matrix
 
     def emitter(self, node, key: str) -> None:
         self.check(node, "emitter")

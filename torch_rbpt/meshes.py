@@ -33,6 +33,8 @@ __all__ = [
     "compute_vertex_normals",
     "load_obj",
     "load_ply",
+    "load_serialized",
+    "write_serialized",
     "load_mesh",
     "rectangle",
     "cube",
@@ -72,6 +74,8 @@ class Mesh:
     normals: Optional[np.ndarray] = None
     uvs: Optional[np.ndarray] = None
     computed_normals: bool = False
+    #: Mitsuba's mesh attributes ("vertex_color": (N, C), "face_color": (M, C), float32).
+    attributes: dict = None
 
     def __post_init__(self) -> None:
         self.positions = _as_array(self.positions, np.float32, 3, "positions")
@@ -88,6 +92,7 @@ class Mesh:
             )
         if self.normals is None:
             self.computed_normals = False
+        self.attributes = dict(self.attributes or {})
 
     # -- sizes ---------------------------------------------------------------------------
 
@@ -179,6 +184,7 @@ class Mesh:
             normals=normals,
             uvs=None if self.uvs is None else self.uvs.copy(),
             computed_normals=self.computed_normals,
+            attributes=self.attributes,
         )
 
     def flipped(self) -> "Mesh":
@@ -198,12 +204,13 @@ class Mesh:
             normals=None if self.normals is None else -self.normals,
             uvs=None if self.uvs is None else self.uvs.copy(),
             computed_normals=self.computed_normals,
+            attributes=self.attributes,
         )
 
     def without_normals(self) -> "Mesh":
         """This mesh with ``normals=None`` (Mitsuba's ``face_normals=true``)."""
         return Mesh(self.positions.copy(), self.faces.copy(), None,
-                    None if self.uvs is None else self.uvs.copy())
+                    None if self.uvs is None else self.uvs.copy(), attributes=self.attributes)
 
 
 def _transform_points_like_mitsuba(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
@@ -637,6 +644,8 @@ def _assemble_obj(path: Path, counts, resolved, positions, texcoords, normals,
 # Texture coordinate property pairs, in the order Mitsuba 3.9 looks for them.
 # ("texture_s", "texture_t") is deliberately absent: Mitsuba 3.9.1 ignores it.
 PLY_UV_NAMES = (("u", "v"), ("texture_u", "texture_v"), ("s", "t"))
+# Colour property names of vertices and faces (Mitsuba's vertex_color / face_color).
+PLY_COLOR_NAMES = (("r", "g", "b"), ("red", "green", "blue"))
 # Face index list names, in the order Mitsuba looks for them.
 PLY_FACE_LIST_NAMES = ("vertex_index", "vertex_indices")
 
@@ -689,10 +698,22 @@ def load_ply(path, face_normals: bool = False, flip_tex_coords: bool = False) ->
             break
     if uvs is not None and flip_tex_coords:
         uvs[:, 1] = np.float32(1.0) - uvs[:, 1]
-    faces = _ply_faces(path, ply, positions.shape[0])
+    faces, face_of_triangle = _ply_faces(path, ply, positions.shape[0])
     if not np.all(np.isfinite(positions)):
         raise MeshError(f"{path}: vertex positions contain non-finite values")
-    return _finish(path, positions, faces, normals, uvs, face_normals)
+    mesh = _finish(path, positions, faces, normals, uvs, face_normals)
+    # Colours as Mitsuba's mesh attributes: (r, g, b) or (red, green, blue), plus alpha, as
+    # stored (8-bit values are not normalized; Mitsuba warns and keeps them).
+    for element, attribute in (("vertex", "vertex_color"), ("face", "face_color")):
+        for names in PLY_COLOR_NAMES:
+            cols = _ply_columns(path, ply[element], names)
+            if cols is not None:
+                alpha = _ply_columns(path, ply[element], ("alpha",))
+                if alpha is not None:
+                    cols = np.hstack([cols, alpha])
+                mesh.attributes[attribute] = cols if element == "vertex" else cols[face_of_triangle]
+                break
+    return mesh
 
 
 def _read_plyfile(path: Path):
@@ -763,8 +784,9 @@ def _ply_columns(path: Path, element, names: Sequence[str], required: bool = Fal
     return np.stack(columns, axis=1)
 
 
-def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
-    """Face index lists of a PLY file -> int32 triangles (M, 3), fan-triangulated."""
+def _ply_faces(path: Path, ply, n_vertices: int):
+    """Face index lists of a PLY file -> int32 triangles (M, 3), fan-triangulated, and the
+    index of the face each triangle comes from."""
     face = ply["face"]
     present = {p.name for p in face.properties}
     name = next((n for n in PLY_FACE_LIST_NAMES if n in present), None)
@@ -772,6 +794,7 @@ def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
         raise MeshError(f"{path}: element 'face' has no 'vertex_index' or 'vertex_indices' "
                         f"list (properties: {sorted(present)})")
     lists = face[name]
+    face_of_triangle = np.arange(len(lists))
     if lists.dtype != object and lists.ndim == 2:  # memory-mapped triangles
         tris = np.asarray(lists, dtype=np.int64)
     elif lists.dtype != object:
@@ -786,11 +809,149 @@ def _ply_faces(path: Path, ply, n_vertices: int) -> np.ndarray:
         flat = (np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])
                 if len(lists) else np.zeros(0, dtype=np.int64))
         tris = flat[_fan_triangles(counts)] if len(lists) else np.zeros((0, 3), np.int64)
+        face_of_triangle = np.repeat(face_of_triangle, counts - 2)
     if tris.size and (tris.min() < 0 or tris.max() >= n_vertices):
         bad = int(np.flatnonzero(np.any((tris < 0) | (tris >= n_vertices), axis=1))[0])
         raise MeshError(f"{path}: triangle {bad} has vertex indices {tris[bad].tolist()}, "
                         f"expected indices in [0, {n_vertices})")
-    return tris.astype(np.int32)
+    return tris.astype(np.int32), face_of_triangle
+
+
+# ---------------------------------------------------------------------------------------
+# Mitsuba's serialized format
+# ---------------------------------------------------------------------------------------
+
+SERIALIZED_MAGIC = 0x041C
+# Flags of a serialized mesh (Mitsuba's TriMeshFlags).
+_SER_NORMALS, _SER_TEXCOORDS, _SER_COLORS, _SER_DOUBLE = 0x0001, 0x0002, 0x0008, 0x2000
+
+
+def load_serialized(path, shape_index: int = 0, face_normals: bool = False) -> Mesh:
+    """Load mesh `shape_index` of a Mitsuba ``.serialized`` file (format versions 3 and 4).
+
+    The format (little endian): per mesh, an uncompressed header ``uint16 0x041C, uint16
+    version``, then a zlib stream holding ``uint32 flags``, (version 4) a null-terminated
+    name, ``uint64`` vertex and triangle counts, positions, normals (flag 0x1), texture
+    coordinates (0x2), vertex colours (0x8), all float32 or float64 (0x2000), and ``uint32``
+    triangle indices. The file ends with the byte offset of each mesh (``uint64``, version 3:
+    ``uint32``) and the ``uint32`` mesh count.
+
+    Mitsuba 3.9.1 semantics (tests/references/MITSUBA_FACTS.md): double values are rounded
+    to float32; file normals are normalized, missing ones computed (angle-weighted) after
+    ``to_world``; texture coordinates are not flipped; vertex colours and the file's
+    face-normals flag (0x10) are ignored (only the ``face_normals`` parameter counts).
+
+    Raises:
+        MeshError: naming the file for a missing file, a wrong header or version, a shape
+            index out of range, a truncated or corrupt stream, or invalid indices.
+    """
+    import struct
+    import zlib
+
+    path = Path(path)
+    data = _read_bytes(path, "serialized")
+    if len(data) < 8:
+        raise MeshError(f"{path}: not a Mitsuba serialized file (only {len(data)} bytes)")
+    magic, version = struct.unpack_from("<HH", data, 0)
+    if magic != SERIALIZED_MAGIC:
+        raise MeshError(f"{path}: not a Mitsuba serialized file (header 0x{magic:04x}, "
+                        f"expected 0x041c)")
+    if version not in (3, 4):
+        raise MeshError(f"{path}: serialized format version {version} is not supported "
+                        f"(versions 3 and 4 are)")
+    count = struct.unpack_from("<I", data, len(data) - 4)[0]
+    if not 0 <= shape_index < max(count, 1):
+        raise MeshError(f"{path}: shape_index {shape_index} is out of range (the file holds "
+                        f"{count} mesh{'es' if count != 1 else ''})")
+    offset = 0
+    if shape_index > 0:
+        size = 8 if version == 4 else 4
+        at = len(data) - 4 - size * (count - shape_index)
+        offset = struct.unpack_from("<Q" if version == 4 else "<I", data, at)[0]
+        if offset + 4 > len(data) or struct.unpack_from("<HH", data, offset) != (magic, version):
+            raise MeshError(f"{path}: the offset of mesh {shape_index} ({offset}) does not "
+                            f"point to a mesh header")
+    try:
+        body = zlib.decompressobj().decompress(data[offset + 4:])
+    except zlib.error as exc:
+        raise MeshError(f"{path}: mesh {shape_index}: corrupt zlib stream ({exc})") from None
+
+    pos = 0
+
+    def take(n: int, what: str) -> bytes:
+        nonlocal pos
+        if pos + n > len(body):
+            raise MeshError(f"{path}: mesh {shape_index} is truncated (reading {what})")
+        pos += n
+        return body[pos - n:pos]
+
+    flags = struct.unpack("<I", take(4, "flags"))[0]
+    if version == 4:
+        end = body.find(b"\0", pos)
+        if end < 0:
+            raise MeshError(f"{path}: mesh {shape_index} is truncated (reading its name)")
+        pos = end + 1
+    n_vertices, n_faces = struct.unpack("<QQ", take(16, "counts"))
+    if n_vertices > len(body) or n_faces > len(body):  # each needs at least a byte
+        raise MeshError(f"{path}: mesh {shape_index} declares {n_vertices} vertices and "
+                        f"{n_faces} triangles, more than the stream holds")
+    dtype = np.dtype("<f8" if flags & _SER_DOUBLE else "<f4")
+
+    def floats(dim: int, what: str) -> np.ndarray:
+        raw = take(n_vertices * dim * dtype.itemsize, what)
+        return np.frombuffer(raw, dtype=dtype).reshape(n_vertices, dim).astype(np.float32)
+
+    positions = floats(3, "positions")
+    normals = floats(3, "normals") if flags & _SER_NORMALS else None
+    uvs = floats(2, "texture coordinates") if flags & _SER_TEXCOORDS else None
+    if flags & _SER_COLORS:
+        floats(3, "vertex colors")  # skipped, as Mitsuba does
+    faces = np.frombuffer(take(n_faces * 12, "triangles"), dtype="<u4").reshape(n_faces, 3)
+    faces = faces.astype(np.int64)
+    if faces.size and faces.max() >= n_vertices:
+        bad = int(np.flatnonzero(np.any(faces >= n_vertices, axis=1))[0])
+        raise MeshError(f"{path}: mesh {shape_index}: triangle {bad} has vertex indices "
+                        f"{faces[bad].tolist()}, expected indices in [0, {n_vertices})")
+    if not np.all(np.isfinite(positions)):
+        raise MeshError(f"{path}: mesh {shape_index}: vertex positions contain non-finite values")
+    return _finish(path, positions, faces.astype(np.int32),
+                   None if face_normals else normals, uvs, face_normals)
+
+
+def write_serialized(path, meshes: Sequence[dict], version: int = 4, double: bool = False) -> None:
+    """Write meshes in Mitsuba's ``.serialized`` format (see :func:`load_serialized`).
+
+    Each mesh is a dict with ``positions`` (N, 3), ``faces`` (M, 3) and optionally
+    ``normals`` (N, 3), ``uvs`` (N, 2), ``colors`` (N, 3), ``face_normals`` (the 0x10 flag)
+    and ``name`` (version 4 only). Values are written as float32, or float64 with `double`.
+    """
+    import struct
+    import zlib
+
+    out, offsets = bytearray(), []
+    ftype = "<f8" if double else "<f4"
+    for m in meshes:
+        offsets.append(len(out))
+        out += struct.pack("<HH", SERIALIZED_MAGIC, version)
+        flags = _SER_DOUBLE if double else 0x1000
+        for key, bit in (("normals", _SER_NORMALS), ("uvs", _SER_TEXCOORDS), ("colors", _SER_COLORS)):
+            if m.get(key) is not None:
+                flags |= bit
+        if m.get("face_normals"):
+            flags |= 0x0010
+        positions, faces = np.asarray(m["positions"]), np.asarray(m["faces"])
+        body = struct.pack("<I", flags)
+        if version == 4:
+            body += m.get("name", "").encode() + b"\0"
+        body += struct.pack("<QQ", len(positions), len(faces))
+        for key in ("positions", "normals", "uvs", "colors"):
+            if m.get(key) is not None:
+                body += np.asarray(m[key], dtype=ftype).tobytes()
+        body += np.asarray(faces, dtype="<u4").tobytes()
+        out += zlib.compress(body)
+    out += b"".join(struct.pack("<Q" if version == 4 else "<I", o) for o in offsets)
+    out += struct.pack("<I", len(meshes))
+    Path(path).write_bytes(bytes(out))
 
 
 def load_mesh(path, face_normals: bool = False,
