@@ -170,10 +170,18 @@ class NativeScene:
         self.calls: list[tuple[str, tuple]] = []
 
     def add(self, what: str, *args) -> int:
-        """`scene.add_<what>(*args)` (param, bitmap, checkerboard, bsdf, mesh, sphere, emitter)."""
-        index = getattr(self.scene, f"add_{what}")(*args)
-        self.calls.append((what, args))
-        return index
+        """`scene.add_<what>(*args)` (param, bitmap, checkerboard, bsdf, mesh, sphere, disk,
+        cylinder, emitter, ...)."""
+        return self.call(f"add_{what}", *args)
+
+    def set_mesh_attribute(self, *args) -> None:
+        """`scene.set_mesh_attribute(shape, which, param, channels)`."""
+        self.call("set_mesh_attribute", *args)
+
+    def call(self, method: str, *args):
+        result = getattr(self.scene, method)(*args)
+        self.calls.append((method, args))
+        return result
 
     def build(self) -> "_C.Scene":
         self.scene.build()
@@ -182,8 +190,8 @@ class NativeScene:
     @classmethod
     def replay(cls, calls: list) -> "_C.Scene":
         native = cls()
-        for what, args in calls:
-            native.add(what, *args)
+        for method, args in calls:
+            native.call(method, *args)
         return native.build()
 
 
