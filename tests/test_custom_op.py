@@ -28,8 +28,8 @@ def _op_args(scene, spp=2, seed=3, requires_grad=()):
 def test01_operators_are_registered_with_schemas():
     schemas = {name: str(getattr(torch.ops.torch_rbpt, name).default._schema)
                for name in ("render", "render_bwd", "render_jvp")}
-    assert schemas["render"].startswith("torch_rbpt::render(Tensor[] params, SymInt scene, SymInt height, "
-                                        "SymInt width, SymInt spp, SymInt seed")
+    assert schemas["render"].startswith("torch_rbpt::render(Tensor[] params, SymInt scene, SymInt sensor, "
+                                        "SymInt height, SymInt width, SymInt spp, SymInt seed")
     assert schemas["render"].endswith("-> Tensor")
     assert "Tensor grad_image, bool[] needs_grad" in schemas["render_bwd"]
     assert schemas["render_bwd"].endswith("-> Tensor[]")
@@ -42,7 +42,7 @@ def test02_opcheck_render(dtype):
     params, handle, h, w, spp, seed = _op_args(scene, requires_grad=(0, 2))
     # A seed above 2**63 travels as a negative int64.
     torch.library.opcheck(torch.ops.torch_rbpt.render.default,
-                          (params, handle, h, w, spp, ops.signed_seed(2 ** 64 - 3), spp, 11))
+                          (params, handle, 0, h, w, spp, ops.signed_seed(2 ** 64 - 3), spp, 11))
 
 
 def test03_opcheck_render_bwd_and_render_jvp():
@@ -51,19 +51,19 @@ def test03_opcheck_render_bwd_and_render_jvp():
     grad_image = torch.rand(h, w, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     needs = [i in (0, 3) for i in range(len(params))]
     torch.library.opcheck(torch.ops.torch_rbpt.render_bwd.default,
-                          (params, grad_image, needs, handle, h, w, spp, seed))
+                          (params, grad_image, needs, handle, 0, h, w, spp, seed))
     tangents = [torch.ones_like(p) if i == 1 else None for i, p in enumerate(params)]
     torch.library.opcheck(torch.ops.torch_rbpt.render_jvp.default,
-                          (params, tangents, handle, h, w, spp, seed))
+                          (params, tangents, handle, 0, h, w, spp, seed))
 
 
 def test04_fake_tensors_get_the_shape_without_the_scene():
     with FakeTensorMode():
         params = [torch.empty(3, dtype=torch.float64), torch.empty(4, 5, 3, dtype=torch.float64)]
         # Handle 0 names no scene: the fake kernels never look the scene up.
-        image = torch.ops.torch_rbpt.render(params, 0, 5, 7, 1, 0, 1, 0)
-        grads = torch.ops.torch_rbpt.render_bwd(params, image, [False, True], 0, 5, 7, 1, 0)
-        tangent = torch.ops.torch_rbpt.render_jvp(params, [None, params[1]], 0, 5, 7, 1, 0)
+        image = torch.ops.torch_rbpt.render(params, 0, 0, 5, 7, 1, 0, 1, 0)
+        grads = torch.ops.torch_rbpt.render_bwd(params, image, [False, True], 0, 0, 5, 7, 1, 0)
+        tangent = torch.ops.torch_rbpt.render_jvp(params, [None, params[1]], 0, 0, 5, 7, 1, 0)
     assert image.shape == tangent.shape == (5, 7, 3) and image.dtype == torch.float64
     assert [g.shape for g in grads] == [(4, 5, 3)]
 
@@ -82,11 +82,14 @@ def test05_seeds_up_to_2_64_keep_their_meaning():
 def test06_handles_name_live_scenes_and_check_the_image_size():
     scene = _cbox()
     params, handle, h, w, spp, seed = _op_args(scene)
-    with pytest.raises(ValueError, match="image size 3x8 given to the operator is not the scene's crop window, 8x8"):
-        torch.ops.torch_rbpt.render(params, handle, 3, 8, spp, seed, spp, seed)
+    with pytest.raises(ValueError, match="image size 3x8 given to the operator is not the crop window "
+                                         "of the scene's sensor 0, 8x8"):
+        torch.ops.torch_rbpt.render(params, handle, 0, 3, 8, spp, seed, spp, seed)
+    with pytest.raises(ValueError, match="sensor 1 given to the operator, but the scene has 1 sensor"):
+        torch.ops.torch_rbpt.render(params, handle, 1, h, w, spp, seed, spp, seed)
     del scene
     with pytest.raises(ValueError, match=f"no live scene has handle {handle}"):
-        torch.ops.torch_rbpt.render(params, handle, h, w, spp, seed, spp, seed)
+        torch.ops.torch_rbpt.render(params, handle, 0, h, w, spp, seed, spp, seed)
 
 
 # -- torch.compile --------------------------------------------------------------------------

@@ -891,7 +891,7 @@ class _Builder:
     def build(self, scene: dict, source: str) -> Scene:
         if scene.get("type") != "scene":
             raise SceneError(f"{_where(scene)}: the root must have type 'scene', got {scene.get('type')!r}")
-        sensor, integrator = None, Integrator()
+        sensors, integrator = [], Integrator()
         for key, value in scene.items():
             if key.startswith("__") or key == "type":
                 continue
@@ -909,9 +909,7 @@ class _Builder:
             elif cat == "emitter":
                 self.emitter(value, key)
             elif cat == "sensor":
-                if sensor is not None:
-                    raise SceneError(f"{_where(value)}: only one sensor is supported")
-                sensor = self.sensor(value)
+                sensors.append(self.sensor(value))
             elif cat == "integrator":
                 integrator = self.integrator(value)
             elif cat == "bsdf":
@@ -925,9 +923,7 @@ class _Builder:
                 warnings.warn(f"{_where(value)}: a top-level sampler is ignored, as Mitsuba 3 "
                               f"ignores it; nest it in the sensor to use it", UserWarning, stacklevel=3)
             # A top-level film, rfilter or sampler is used where a sensor (or film) references it.
-        if sensor is None:
-            sensor = Sensor()
-        return Scene(self.native, self.params, sensor, integrator, source, self.fixed)
+        return Scene(self.native, self.params, sensors or [Sensor()], integrator, source, self.fixed)
 
 
 def load_dict(scene: dict, dtype: torch.dtype = torch.float32, base_dir=None) -> Scene:

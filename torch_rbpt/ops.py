@@ -2,8 +2,9 @@
 `render_jvp`, with their fake (shape-only) implementations, autograd and vmap rules.
 
 The scene reaches an operator as its parameter tensors (`Tensor[]`, in the scene's registry
-order) and a handle: an int naming a live `Scene` in this process (`register_scene`), whose
-C++ scene, sensor and integrator the kernel reads when it runs. The crop window's size is an
+order), a handle: an int naming a live `Scene` in this process (`register_scene`), whose
+C++ scene, sensors and integrator the kernel reads when it runs, and the index of the sensor
+to render from. The crop window's size is an
 argument too, so fake tensors get the image's shape without the scene, and torch.compile
 guards on it. Seeds are in [0, 2**64); they travel as int64 (`signed_seed`)."""
 from __future__ import annotations
@@ -27,17 +28,23 @@ def register_scene(scene) -> int:
     return handle
 
 
-def _scene(handle: int, height: int, width: int):
+def _scene(handle: int, sensor: int, height: int, width: int):
+    """The live scene of `handle` and its sensor number `sensor`, checked against the image
+    size the operator was given."""
     scene = _scenes.get(handle)
     if scene is None:
         raise ValueError(f"torch_rbpt: no live scene has handle {handle} (handles belong to the "
                          f"process and the Scene object that made them)")
-    _, _, w, h = scene.sensor.film.crop_window()
+    if not 0 <= sensor < len(scene.sensors):
+        raise ValueError(f"torch_rbpt: sensor {sensor} given to the operator, but the scene has "
+                         f"{len(scene.sensors)} sensor(s)")
+    s = scene.sensors[sensor]
+    _, _, w, h = s.film.crop_window()
     if (h, w) != (height, width):
         raise ValueError(f"torch_rbpt: the image size {height}x{width} given to the operator is not "
-                         f"the scene's crop window, {h}x{w}")
+                         f"the crop window of the scene's sensor {sensor}, {h}x{w}")
     scene.check_fixed()
-    return scene
+    return scene, s
 
 
 def signed_seed(seed: int) -> int:
@@ -56,19 +63,19 @@ def _empty_image(params: list[Tensor], height: int, width: int) -> Tensor:
 # -- render: the image ----------------------------------------------------------------------
 
 @torch.library.custom_op("torch_rbpt::render", mutates_args=(), device_types="cpu")
-def render(params: list[Tensor], scene: int, height: int, width: int, spp: int, seed: int,
-           spp_grad: int, seed_grad: int) -> Tensor:
-    """The (height, width, 3) image of scene `scene` with parameter values `params`.
-    `spp_grad` and `seed_grad` are the backward pass's."""
-    s = _scene(scene, height, width)
+def render(params: list[Tensor], scene: int, sensor: int, height: int, width: int, spp: int,
+           seed: int, spp_grad: int, seed_grad: int) -> Tensor:
+    """The (height, width, 3) image of scene `scene` seen by its sensor `sensor`, with
+    parameter values `params`. `spp_grad` and `seed_grad` are the backward pass's."""
+    s, camera = _scene(scene, sensor, height, width)
     values = [p.contiguous() for p in params]
-    image, _ = _C.render_fwd(s._native, s.sensor.native(), s.integrator.native(), values, spp,
+    image, _ = _C.render_fwd(s._native, camera.native(), s.integrator.native(), values, spp,
                              _unsigned(seed), 0, -1)
     return image
 
 
 @render.register_fake
-def _(params, scene, height, width, spp, seed, spp_grad, seed_grad):
+def _(params, scene, sensor, height, width, spp, seed, spp_grad, seed_grad):
     return _empty_image(params, height, width)
 
 
@@ -76,19 +83,19 @@ def _(params, scene, height, width, spp, seed, spp_grad, seed_grad):
 
 @torch.library.custom_op("torch_rbpt::render_bwd", mutates_args=(), device_types="cpu")
 def render_bwd(params: list[Tensor], grad_image: Tensor, needs_grad: list[bool], scene: int,
-               height: int, width: int, spp: int, seed: int) -> list[Tensor]:
+               sensor: int, height: int, width: int, spp: int, seed: int) -> list[Tensor]:
     """Gradients of sum(grad_image * image) with respect to the parameters flagged in
     `needs_grad` (only those: one tensor shaped like each), from `spp` paths per pixel
     traced with `seed`."""
-    s = _scene(scene, height, width)
+    s, camera = _scene(scene, sensor, height, width)
     values = [p.contiguous() for p in params]
-    grads = _C.render_bwd(s._native, s.sensor.native(), s.integrator.native(), values,
+    grads = _C.render_bwd(s._native, camera.native(), s.integrator.native(), values,
                           list(needs_grad), grad_image, spp, _unsigned(seed))
     return [g.view_as(p) for g, p, n in zip(grads, params, needs_grad) if n]
 
 
 @render_bwd.register_fake
-def _(params, grad_image, needs_grad, scene, height, width, spp, seed):
+def _(params, grad_image, needs_grad, scene, sensor, height, width, spp, seed):
     return [torch.empty_like(p) for p, n in zip(params, needs_grad) if n]
 
 
@@ -104,42 +111,42 @@ render_bwd.register_autograd(double_backward_error)
 # -- render_jvp: forward mode -------------------------------------------------------------------
 
 @torch.library.custom_op("torch_rbpt::render_jvp", mutates_args=(), device_types="cpu")
-def render_jvp(params: list[Tensor], tangents: list[Tensor | None], scene: int, height: int,
-               width: int, spp: int, seed: int) -> Tensor:
+def render_jvp(params: list[Tensor], tangents: list[Tensor | None], scene: int, sensor: int,
+               height: int, width: int, spp: int, seed: int) -> Tensor:
     """The derivative of render(params, ..., spp, seed) along `tangents` (one per parameter,
     None for zero), rendered with dual numbers."""
-    s = _scene(scene, height, width)
+    s, camera = _scene(scene, sensor, height, width)
     values = [p.contiguous() for p in params]
     t = [None if x is None else x.contiguous() for x in tangents]
-    _, derivative = _C.render_jvp(s._native, s.sensor.native(), s.integrator.native(), values, t,
+    _, derivative = _C.render_jvp(s._native, camera.native(), s.integrator.native(), values, t,
                                   spp, _unsigned(seed))
     return derivative
 
 
 @render_jvp.register_fake
-def _(params, tangents, scene, height, width, spp, seed):
+def _(params, tangents, scene, sensor, height, width, spp, seed):
     return _empty_image(params, height, width)
 
 
 # -- autograd: independent adjoint paths ----------------------------------------------------------
 
 def _setup_context(ctx, inputs, output):
-    params, scene, height, width, spp, seed, spp_grad, seed_grad = inputs
+    params, scene, sensor, height, width, spp, seed, spp_grad, seed_grad = inputs
     ctx.save_for_backward(*params)
-    ctx.args = scene, height, width, spp_grad, seed_grad
+    ctx.args = scene, sensor, height, width, spp_grad, seed_grad
 
 
 def _backward(ctx, grad_image):
     params = list(ctx.saved_tensors)
     needs = list(ctx.needs_input_grad[0])
-    return (param_grads(params, grad_image, needs, *ctx.args),) + (None,) * 7
+    return (param_grads(params, grad_image, needs, *ctx.args),) + (None,) * 8
 
 
-def param_grads(params, grad_image, needs, scene, height, width, spp_grad, seed_grad) -> list:
+def param_grads(params, grad_image, needs, scene, sensor, height, width, spp_grad, seed_grad) -> list:
     """One gradient per parameter (None where `needs` is False or grad_image is None)."""
     if grad_image is None or not any(needs):
         return [None] * len(params)
-    grads = iter(render_bwd(params, grad_image, needs, scene, height, width, spp_grad, seed_grad))
+    grads = iter(render_bwd(params, grad_image, needs, scene, sensor, height, width, spp_grad, seed_grad))
     return [next(grads) if n else None for n in needs]
 
 

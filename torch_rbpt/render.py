@@ -7,7 +7,7 @@ import numbers
 import torch
 
 from . import _C, ops
-from .scene import Scene
+from .scene import Scene, Sensor
 
 _SEED_GRAD_MIX = 0x5DEECE66D  # nonzero: a derived seed_grad never equals seed
 
@@ -29,8 +29,23 @@ def _check_spp(name: str, spp) -> int:
     return int(spp)
 
 
-def _image_size(scene: Scene) -> tuple[int, int]:
-    _, _, width, height = scene.sensor.film.crop_window()
+def _sensor_index(scene: Scene, sensor) -> int:
+    """The index in scene.sensors of `sensor` (an index or one of the scene's Sensor objects),
+    as Mitsuba's `render(scene, sensor=...)` takes it."""
+    if isinstance(sensor, Sensor):
+        for i, s in enumerate(scene.sensors):
+            if s is sensor:
+                return i
+        raise ValueError("sensor: this Sensor object is not one of the scene's sensors")
+    n = len(scene.sensors)
+    if isinstance(sensor, bool) or not isinstance(sensor, numbers.Integral) or not -n <= sensor < n:
+        raise ValueError(f"sensor must be an index into the scene's {n} sensor(s) or one of "
+                         f"scene.sensors, got {sensor!r}")
+    return int(sensor) % n
+
+
+def _image_size(scene: Scene, sensor: int) -> tuple[int, int]:
+    _, _, width, height = scene.sensors[sensor].film.crop_window()
     return height, width
 
 
@@ -46,32 +61,33 @@ class _Render(torch.autograd.Function):
     generate_vmap_rule = True  # vmap goes through the operators' own vmap rules
 
     @staticmethod
-    def forward(scene, height, width, spp, seed, spp_grad, seed_grad, *params):
-        return ops.render(list(params), scene, height, width, spp, seed, spp_grad, seed_grad)
+    def forward(scene, sensor, height, width, spp, seed, spp_grad, seed_grad, *params):
+        return ops.render(list(params), scene, sensor, height, width, spp, seed, spp_grad, seed_grad)
 
     @staticmethod
     def setup_context(ctx, inputs, output):
-        scene, height, width, spp, seed, spp_grad, seed_grad, *params = inputs
-        ctx.args = scene, height, width, spp, seed, spp_grad, seed_grad
+        scene, sensor, height, width, spp, seed, spp_grad, seed_grad, *params = inputs
+        ctx.args = scene, sensor, height, width, spp, seed, spp_grad, seed_grad
         ctx.save_for_backward(*params)
         ctx.save_for_forward(*params)
         ctx.set_materialize_grads(False)
 
     @staticmethod
     def jvp(ctx, *tangents):
-        scene, height, width, spp, seed, _, _ = ctx.args
-        return ops.render_jvp(list(ctx.saved_tensors), list(tangents[7:]), scene, height, width, spp, seed)
+        scene, sensor, height, width, spp, seed, _, _ = ctx.args
+        return ops.render_jvp(list(ctx.saved_tensors), list(tangents[8:]), scene, sensor, height,
+                              width, spp, seed)
 
     @staticmethod
     def backward(ctx, grad_image):
-        scene, height, width, _, _, spp_grad, seed_grad = ctx.args
+        scene, sensor, height, width, _, _, spp_grad, seed_grad = ctx.args
         params = ctx.saved_tensors
-        needs = list(ctx.needs_input_grad[7:])
+        needs = list(ctx.needs_input_grad[8:])
         if grad_image is None or not any(needs):
-            return (None,) * (7 + len(params))
-        grads = iter(_RenderBwd.apply((scene, height, width, spp_grad, seed_grad), needs,
+            return (None,) * (8 + len(params))
+        grads = iter(_RenderBwd.apply((scene, sensor, height, width, spp_grad, seed_grad), needs,
                                       grad_image, *params))
-        return (None,) * 7 + tuple(next(grads) if n else None for n in needs)
+        return (None,) * 8 + tuple(next(grads) if n else None for n in needs)
 
 
 class _RenderBwd(torch.autograd.Function):
@@ -94,9 +110,11 @@ class _RenderBwd(torch.autograd.Function):
 
 
 def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | None = None,
-           seed_grad: int | None = None, rows: tuple[int, int] | None = None) -> torch.Tensor:
-    """Render `scene`: a (H, W, 3) linear RGB tensor of the parameters' dtype (H, W: the
-    film's crop window).
+           seed_grad: int | None = None, rows: tuple[int, int] | None = None,
+           sensor: int | Sensor = 0) -> torch.Tensor:
+    """Render `scene` as seen by `sensor` (an index into `scene.sensors` or one of them;
+    default the first): a (H, W, 3) linear RGB tensor of the parameters' dtype (H, W: that
+    sensor's film's crop window).
 
     Differentiable with respect to every tensor of `scene.params` that requires grad.
     `spp` defaults to the scene sampler's sample_count. The backward pass traces `spp_grad`
@@ -107,7 +125,8 @@ def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | 
     given thread count (the image: for any thread count). `rows=(begin, end)` renders a band
     of rows only (not differentiable).
     """
-    spp = _check_spp("spp", scene.sensor.spp if spp is None else spp)
+    sensor = _sensor_index(scene, sensor)
+    spp = _check_spp("spp", scene.sensors[sensor].spp if spp is None else spp)
     seed = _check_seed("seed", seed)
     spp_grad = _check_spp("spp_grad", spp if spp_grad is None else spp_grad)
     seed_grad = _check_seed("seed_grad", default_seed_grad(seed) if seed_grad is None else seed_grad)
@@ -117,34 +136,39 @@ def render(scene: Scene, spp: int | None = None, seed: int = 0, spp_grad: int | 
             raise ValueError("rows= renders a band of an image and is not differentiable; "
                              "render the whole image or use torch.no_grad()")
         scene.check_fixed()
-        return render_with_stats(scene, spp, seed, rows)[0]
-    height, width = _image_size(scene)
-    args = (scene._handle, height, width, spp, ops.signed_seed(seed), spp_grad, ops.signed_seed(seed_grad))
+        return render_with_stats(scene, spp, seed, rows, sensor)[0]
+    height, width = _image_size(scene, sensor)
+    args = (scene._handle, sensor, height, width, spp, ops.signed_seed(seed), spp_grad,
+            ops.signed_seed(seed_grad))
     if torch.compiler.is_compiling():
         return ops.render(params, *args)
     return _Render.apply(*args, *params)
 
 
 def render_with_stats(scene: Scene, spp: int | None = None, seed: int = 0,
-                      rows: tuple[int, int] | None = None) -> tuple[torch.Tensor, int]:
+                      rows: tuple[int, int] | None = None,
+                      sensor: int | Sensor = 0) -> tuple[torch.Tensor, int]:
     """Non-differentiable render that also returns the number of rays traced (camera,
     bounce and shadow rays)."""
-    spp = _check_spp("spp", scene.sensor.spp if spp is None else spp)
+    sensor = _sensor_index(scene, sensor)
+    spp = _check_spp("spp", scene.sensors[sensor].spp if spp is None else spp)
     seed = _check_seed("seed", seed)
     begin, end = (0, -1) if rows is None else rows
-    image, rays = _C.render_fwd(scene._native, scene.sensor.native(), scene.integrator.native(),
+    image, rays = _C.render_fwd(scene._native, scene.sensors[sensor].native(), scene.integrator.native(),
                                 scene.param_list(), spp, seed, begin, end)
     return image, int(rays)
 
 
-def render_forward(scene: Scene, tangents: dict, spp: int | None = None, seed: int = 0) -> torch.Tensor:
+def render_forward(scene: Scene, tangents: dict, spp: int | None = None, seed: int = 0,
+                   sensor: int | Sensor = 0) -> torch.Tensor:
     """Forward-mode derivative of the image along `tangents` ({key: tensor shaped like
     scene.params[key]}), rendered with dual numbers: a (H, W, 3) tensor of the parameters'
     dtype. With the same seed it is the exact derivative of `render(scene, spp, seed)`."""
-    spp = _check_spp("spp", scene.sensor.spp if spp is None else spp)
+    sensor = _sensor_index(scene, sensor)
+    spp = _check_spp("spp", scene.sensors[sensor].spp if spp is None else spp)
     seed = _check_seed("seed", seed)
     scene.differentiable_inputs()  # checks fixed parameters (and the operator, edits)
     t = scene.tangent_list(tangents)
-    height, width = _image_size(scene)
-    return ops.render_jvp(scene.param_list(), t, scene._handle, height, width, spp,
+    height, width = _image_size(scene, sensor)
+    return ops.render_jvp(scene.param_list(), t, scene._handle, sensor, height, width, spp,
                           ops.signed_seed(seed))

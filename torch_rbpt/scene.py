@@ -198,11 +198,14 @@ class NativeScene:
 class Scene:
     """A loaded scene. Create with `torch_rbpt.load_file` or `torch_rbpt.load_dict`.
 
-    Scenes pickle and deep-copy (parameters with their current values and requires_grad,
-    sensor, integrator); a copy renders bitwise the same images."""
+    `scene.sensors` lists its sensors in the order the file declares them (as Mitsuba's
+    `scene.sensors()`); `scene.sensor` is the first. Scenes pickle and deep-copy (parameters
+    with their current values and requires_grad, sensors, integrator); a copy renders bitwise
+    the same images."""
 
-    def __init__(self, native: NativeScene, params: dict[str, torch.Tensor], sensor: Sensor,
-                 integrator: Integrator, source: str = "<dict>", fixed: dict | None = None):
+    def __init__(self, native: NativeScene, params: dict[str, torch.Tensor],
+                 sensors: "Sensor | list[Sensor]", integrator: Integrator, source: str = "<dict>",
+                 fixed: dict | None = None):
         self._native = native.build()
         self._calls = native.calls
         self._handle = ops.register_scene(self)  # names the scene to the custom operators
@@ -210,9 +213,20 @@ class Scene:
         fixed = fixed or {}
         self.params = SceneParams({**params, **{k: v for k, (v, _) in fixed.items()}},
                                   {k: why for k, (_, why) in fixed.items()})
-        self.sensor = sensor
+        self.sensors = [sensors] if isinstance(sensors, Sensor) else list(sensors)
+        if not self.sensors:
+            self.sensors = [Sensor()]
         self.integrator = integrator
         self.source = source
+
+    @property
+    def sensor(self) -> Sensor:
+        """The first sensor (the one `render` uses by default)."""
+        return self.sensors[0]
+
+    @sensor.setter
+    def sensor(self, value: Sensor) -> None:
+        self.sensors[0] = value
 
     @property
     def dtype(self) -> torch.dtype:
