@@ -499,3 +499,20 @@ def test36_textured_emission_is_a_clear_error():
         scene = {"type": "scene", "e": {**emitter, name: {"type": "checkerboard"}}}
         with pytest.raises(tr.SceneError, match=rf"<dict>: {emitter['type']}: .*textured .* not supported"):
             tr.load_dict(scene)
+
+
+@pytest.mark.parametrize("body, message", [
+    ('<medium type="homogeneous" id="fog"/>', r"<medium>: participating media are not supported"),
+    ('<integrator type="volpath"/>', r"plugin 'volpath': participating media are not supported"),
+    ('<bsdf type="polarizer"/>', r"plugin 'polarizer': polarisation is not supported"),
+    ('<bsdf type="hair"/>', r"plugin 'hair': hair BSDFs are not supported"),
+    ('<shape type="bsplinecurve"/>', r"plugin 'bsplinecurve': curves are not supported"),
+    ('<shape type="sdfgrid"/>', r"plugin 'sdfgrid': SDF grids are not supported"),
+    ('<emitter type="area"><spectrum type="blackbody" name="radiance"/></emitter>',
+     r'<spectrum type="blackbody">: spectrum plugins are not supported'),
+])
+def test37_capabilities_we_lack_are_named(tmp_path, body, message):
+    # Media, polarisation, curves, SDF grids, hair and spectral rendering are refused with a
+    # SceneError that says which capability is missing, at the file and line.
+    with pytest.raises(tr.SceneError, match=r"scene\.xml:2: " + message):
+        tr.load_file(_write(tmp_path, body))

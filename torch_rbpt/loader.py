@@ -124,9 +124,27 @@ def _check_plugin_dicts(node: dict, key: str) -> None:
             _check_plugin_dicts(value, name)
 
 
+# Plugins of capabilities we do not have at all, named in the error (Mitsuba 3 plugin names).
+NOT_SUPPORTED = {
+    **dict.fromkeys(["homogeneous", "heterogeneous", "isotropic", "hg", "rayleigh", "sggx",
+                     "volpath", "volpathmis", "prbvolpath", "gridvolume", "constvolume"],
+                    "participating media are not supported"),
+    **dict.fromkeys(["polarizer", "retarder", "measured_polarized", "stokes", "pplastic"],
+                    "polarisation is not supported (RGB rendering only)"),
+    **dict.fromkeys(["bsplinecurve", "linearcurve"], "curves are not supported"),
+    "sdfgrid": "SDF grids are not supported",
+    "hair": "hair BSDFs are not supported",
+    **dict.fromkeys(["irregular", "blackbody", "d65", "uniform", "regular"],
+                    "spectral rendering is not supported: give colours as rgb or a "
+                    "wavelength:value <spectrum> list, which is converted to RGB"),
+}
+
+
 def _unsupported(node: dict, key: str) -> str:
     """The message for a plugin of unknown type, listing the supported plugins of its kind
     (from its XML tag, or its dict key when that names a kind) or all of them."""
+    if node.get("type") in NOT_SUPPORTED:
+        return f"plugin '{node['type']}': {NOT_SUPPORTED[node['type']]}"
     kind = node.get("__tag__") or key
     if kind not in CATEGORY.values():
         return f"unsupported plugin '{node['type']}' (supported: {', '.join(sorted(CATEGORY))})"

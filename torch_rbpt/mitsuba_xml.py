@@ -200,6 +200,9 @@ class XMLReader:
                 if name in node:
                     raise SceneError(f"{where}: property '{name}' is given twice")
                 node[name] = value
+            elif tag in ("medium", "phase", "volume"):
+                raise SceneError(f"{where}: <{tag}>: participating media are not supported "
+                                 f"(surfaces in vacuum only)")
             else:
                 raise SceneError(f"{where}: unsupported element <{tag}> (supported: "
                                  f"{', '.join(PLUGIN_TAGS + VALUE_TAGS)}, default, include, path)")
@@ -270,6 +273,9 @@ class XMLReader:
         """<spectrum value="0.5"/>, value="400:0.1, 700:0.5" or filename="x.spd": a dict of
         type "spectrum" (converted to RGB by the loader, which knows whether it is emitted)."""
         node = {"type": "spectrum", "__where__": where}
+        if el.get("type") is not None:
+            raise SceneError(f"{where}: <spectrum type=\"{el.get('type')}\">: spectrum plugins are not "
+                             f"supported (RGB rendering: give a constant or wavelength:value pairs)")
         if (el.get("value") is None) == (el.get("filename") is None):
             raise SceneError(f"{where}: <spectrum name=\"{name}\"> needs either 'value' or 'filename'")
         if el.get("filename") is not None:
