@@ -62,7 +62,27 @@ def _empty_image(params: list[Tensor], height: int, width: int) -> Tensor:
 
 # -- render: the image ----------------------------------------------------------------------
 
-@torch.library.custom_op("torch_rbpt::render", mutates_args=(), device_types="cpu")
+def _operator(schema: str):
+    """Define torch_rbpt::<name> with `schema` and register the decorated function as its CPU
+    kernel; returns the operator. (torch.library.define + impl rather than custom_op: a
+    custom_op's kernel is wrapped to disable torch.compile inside it, which imports
+    torch._dynamo, over a second and 70 MB, at the first eager call. Dynamo never traces
+    into these kernels: it records the operator as one opaque call.)"""
+    name = schema[:schema.index("(")]
+
+    def register(kernel):
+        torch.library.define(f"torch_rbpt::{name}", schema[len(name):], lib=_LIB)
+        torch.library.impl(f"torch_rbpt::{name}", "cpu", kernel, lib=_LIB)
+        return getattr(torch.ops.torch_rbpt, name).default
+
+    return register
+
+
+_LIB = torch.library.Library("torch_rbpt", "DEF")
+
+
+@_operator("render(Tensor[] params, SymInt scene, SymInt sensor, SymInt height, SymInt width, "
+           "SymInt spp, SymInt seed, SymInt spp_grad, SymInt seed_grad) -> Tensor")
 def render(params: list[Tensor], scene: int, sensor: int, height: int, width: int, spp: int,
            seed: int, spp_grad: int, seed_grad: int) -> Tensor:
     """The (height, width, 3) image of scene `scene` seen by its sensor `sensor`, with
@@ -74,14 +94,15 @@ def render(params: list[Tensor], scene: int, sensor: int, height: int, width: in
     return image
 
 
-@render.register_fake
+@torch.library.register_fake("torch_rbpt::render", lib=_LIB)
 def _(params, scene, sensor, height, width, spp, seed, spp_grad, seed_grad):
     return _empty_image(params, height, width)
 
 
 # -- render_bwd: radiative backpropagation ----------------------------------------------------
 
-@torch.library.custom_op("torch_rbpt::render_bwd", mutates_args=(), device_types="cpu")
+@_operator("render_bwd(Tensor[] params, Tensor grad_image, bool[] needs_grad, SymInt scene, "
+           "SymInt sensor, SymInt height, SymInt width, SymInt spp, SymInt seed) -> Tensor[]")
 def render_bwd(params: list[Tensor], grad_image: Tensor, needs_grad: list[bool], scene: int,
                sensor: int, height: int, width: int, spp: int, seed: int) -> list[Tensor]:
     """Gradients of sum(grad_image * image) with respect to the parameters flagged in
@@ -94,7 +115,7 @@ def render_bwd(params: list[Tensor], grad_image: Tensor, needs_grad: list[bool],
     return [g.view_as(p) for g, p, n in zip(grads, params, needs_grad) if n]
 
 
-@render_bwd.register_fake
+@torch.library.register_fake("torch_rbpt::render_bwd", lib=_LIB)
 def _(params, grad_image, needs_grad, scene, sensor, height, width, spp, seed):
     return [torch.empty_like(p) for p, n in zip(params, needs_grad) if n]
 
@@ -105,12 +126,13 @@ def double_backward_error(ctx, *grads):
                        "render once, by reverse mode or by render_forward")
 
 
-render_bwd.register_autograd(double_backward_error)
+torch.library.register_autograd("torch_rbpt::render_bwd", double_backward_error, lib=_LIB)
 
 
 # -- render_jvp: forward mode -------------------------------------------------------------------
 
-@torch.library.custom_op("torch_rbpt::render_jvp", mutates_args=(), device_types="cpu")
+@_operator("render_jvp(Tensor[] params, Tensor?[] tangents, SymInt scene, SymInt sensor, "
+           "SymInt height, SymInt width, SymInt spp, SymInt seed) -> Tensor")
 def render_jvp(params: list[Tensor], tangents: list[Tensor | None], scene: int, sensor: int,
                height: int, width: int, spp: int, seed: int) -> Tensor:
     """The derivative of render(params, ..., spp, seed) along `tangents` (one per parameter,
@@ -123,7 +145,7 @@ def render_jvp(params: list[Tensor], tangents: list[Tensor | None], scene: int, 
     return derivative
 
 
-@render_jvp.register_fake
+@torch.library.register_fake("torch_rbpt::render_jvp", lib=_LIB)
 def _(params, tangents, scene, sensor, height, width, spp, seed):
     return _empty_image(params, height, width)
 
@@ -150,7 +172,7 @@ def param_grads(params, grad_image, needs, scene, sensor, height, width, spp_gra
     return [next(grads) if n else None for n in needs]
 
 
-render.register_autograd(_backward, setup_context=_setup_context)
+torch.library.register_autograd("torch_rbpt::render", _backward, setup_context=_setup_context, lib=_LIB)
 
 
 # -- vmap: one call per batch entry ----------------------------------------------------------------
@@ -175,4 +197,4 @@ def _loop_vmap(op):
 
 
 for _op in (render, render_bwd, render_jvp):
-    _op.register_vmap(_loop_vmap(_op))
+    torch.library.register_vmap(_op, _loop_vmap(_op), lib=_LIB)
