@@ -482,12 +482,18 @@ py::tuple camera_rays(const py::dict &camera, torch::Tensor positions, torch::Te
     return py::make_tuple(o, d, t0, t1);
 }
 
-/// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
-py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
+/// Checks a batch of rays (origins and directions, (N, 3) each, converted to contiguous
+/// float32 in place) and returns N.
+int64_t ray_batch(torch::Tensor &origins, torch::Tensor &directions) {
     origins = float_array(origins, 3, "origins");
     directions = float_array(directions, 3, "directions");
-    int64_t n = origins.size(0);
-    if (directions.size(0) != n) fail("origins and directions must have the same length");
+    if (directions.size(0) != origins.size(0)) fail("origins and directions must have the same length");
+    return origins.size(0);
+}
+
+/// Nearest hits of a batch of rays: (t (N,) with inf for misses, shape index (N,) or -1).
+py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
+    int64_t n = ray_batch(origins, directions);
     torch::Tensor t = torch::full({n}, std::numeric_limits<float>::infinity(), torch::kFloat32);
     torch::Tensor shape = torch::full({n}, -1, torch::kInt64);
     const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
@@ -514,10 +520,7 @@ py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tenso
 /// Surface interactions of a batch of rays (for tests): (t (N,), shape (N,), p (N, 3),
 /// geometric normal n (N, 3), uv (N, 2)); misses have t = inf, shape -1 and zeros.
 py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
-    origins = float_array(origins, 3, "origins");
-    directions = float_array(directions, 3, "directions");
-    int64_t n = origins.size(0);
-    if (directions.size(0) != n) fail("origins and directions must have the same length");
+    int64_t n = ray_batch(origins, directions);
     torch::Tensor t = torch::full({n}, std::numeric_limits<float>::infinity(), torch::kFloat32);
     torch::Tensor shape = torch::full({n}, -1, torch::kInt64);
     torch::Tensor p = torch::zeros({n, 3}), nrm = torch::zeros({n, 3}), uv = torch::zeros({n, 2});
