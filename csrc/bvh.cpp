@@ -396,7 +396,10 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (nodes_.empty()) return false;
     // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
     if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
-    RayPrecomp4 pc(ray);
+    // The triangle test's per-ray constants, set up at the first leaf: most rays of a large
+    // scene leave it after a few boxes, without reaching one.
+    RayPrecomp4 pc;
+    bool pc_ready = false;
     const NodeTest node_test(ray);
     float tmax = ray.tmax;
     bool found = false;
@@ -460,6 +463,10 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                 const PrimPack4 &pack = packs_[p];
                 if (pack.triangles) {
                     float t[4], u[4], v[4];
+                    if (!pc_ready) {
+                        pc = RayPrecomp4(ray);
+                        pc_ready = true;
+                    }
                     int mask = intersect_triangles4(pc, pack.tris, pack.triangles, ray.tmin, tmax,
                                                     t, u, v);
                     if (mask) {

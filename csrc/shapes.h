@@ -151,6 +151,7 @@ struct alignas(16) TrianglePack4 {
 struct RayPrecomp4 {
     int kx, ky, kz;
     __m128 ox, oy, oz, sx, sy, sz;
+    RayPrecomp4() = default;
     explicit RayPrecomp4(const Ray &ray) {
         RayPrecomp pc(ray.d);
         kx = pc.kx;
