@@ -335,61 +335,62 @@ void BVH::build(const Geometry &geometry) {
     }
 }
 
+/// BVHWidth float lanes: the few vector operations the slab test needs, on AVX or SSE.
+#if defined(__AVX__)
+struct Lanes {
+    using V = __m256;
+    static V set1(float x) { return _mm256_set1_ps(x); }
+    static V load(const float *p) { return _mm256_load_ps(p); }
+    static void store(float *p, V a) { _mm256_storeu_ps(p, a); }
+    static V sub(V a, V b) { return _mm256_sub_ps(a, b); }
+    static V mul(V a, V b) { return _mm256_mul_ps(a, b); }
+    static V max(V a, V b) { return _mm256_max_ps(a, b); }
+    static V min(V a, V b) { return _mm256_min_ps(a, b); }
+    static int le_mask(V a, V b) { return _mm256_movemask_ps(_mm256_cmp_ps(a, b, _CMP_LE_OQ)); }
+};
+#else
+struct Lanes {
+    using V = __m128;
+    static V set1(float x) { return _mm_set1_ps(x); }
+    static V load(const float *p) { return _mm_load_ps(p); }
+    static void store(float *p, V a) { _mm_storeu_ps(p, a); }
+    static V sub(V a, V b) { return _mm_sub_ps(a, b); }
+    static V mul(V a, V b) { return _mm_mul_ps(a, b); }
+    static V max(V a, V b) { return _mm_max_ps(a, b); }
+    static V min(V a, V b) { return _mm_min_ps(a, b); }
+    static int le_mask(V a, V b) { return _mm_movemask_ps(_mm_cmple_ps(a, b)); }
+};
+#endif
+
 /// The slab test of a ray against all child boxes of a node at once (Williams et al. 2005):
 /// the per-ray constants splatted over the lanes, and the test returning the mask of children
 /// entered before `tmax` with their entry distances. A NaN (0 * inf, the origin on a slab plane
 /// of a parallel ray) is dropped by max/min, which return their second operand.
-#if defined(__AVX__)
 struct NodeTest {
-    __m256 o[3], inv_d[3], tmin;
+    using L = Lanes;
+    L::V o[3], inv_d[3], tmin;
     bool neg[3];
-    NodeTest(const Ray &ray) : tmin(_mm256_set1_ps(ray.tmin)) {
+    NodeTest(const Ray &ray) : tmin(L::set1(ray.tmin)) {
         for (int axis = 0; axis < 3; ++axis) {
             float inv = 1.f / ray.d[axis];
-            o[axis] = _mm256_set1_ps(ray.o[axis]);
-            inv_d[axis] = _mm256_set1_ps(inv);
+            o[axis] = L::set1(ray.o[axis]);
+            inv_d[axis] = L::set1(inv);
             neg[axis] = std::signbit(inv);
         }
     }
     int operator()(const BVHNode &node, float tmax, float t_entry[BVHWidth]) const {
-        __m256 t0 = tmin, t1 = _mm256_set1_ps(tmax);
+        L::V t0 = tmin, t1 = L::set1(tmax);
         for (int axis = 0; axis < 3; ++axis) {
-            __m256 lo = _mm256_load_ps(node.lo[axis]), hi = _mm256_load_ps(node.hi[axis]);
-            __m256 t_near = _mm256_mul_ps(_mm256_sub_ps(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
-            __m256 t_far = _mm256_mul_ps(_mm256_sub_ps(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
-            t0 = _mm256_max_ps(t_near, t0);
-            t1 = _mm256_min_ps(t_far, t1);
+            L::V lo = L::load(node.lo[axis]), hi = L::load(node.hi[axis]);
+            L::V t_near = L::mul(L::sub(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
+            L::V t_far = L::mul(L::sub(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
+            t0 = L::max(t_near, t0);
+            t1 = L::min(t_far, t1);
         }
-        _mm256_storeu_ps(t_entry, t0);
-        return _mm256_movemask_ps(_mm256_cmp_ps(t0, _mm256_mul_ps(t1, _mm256_set1_ps(BoxWiden)), _CMP_LE_OQ));
+        L::store(t_entry, t0);
+        return L::le_mask(t0, L::mul(t1, L::set1(BoxWiden)));
     }
 };
-#else
-struct NodeTest {
-    __m128 o[3], inv_d[3], tmin;
-    bool neg[3];
-    NodeTest(const Ray &ray) : tmin(_mm_set1_ps(ray.tmin)) {
-        for (int axis = 0; axis < 3; ++axis) {
-            float inv = 1.f / ray.d[axis];
-            o[axis] = _mm_set1_ps(ray.o[axis]);
-            inv_d[axis] = _mm_set1_ps(inv);
-            neg[axis] = std::signbit(inv);
-        }
-    }
-    int operator()(const BVHNode &node, float tmax, float t_entry[BVHWidth]) const {
-        __m128 t0 = tmin, t1 = _mm_set1_ps(tmax);
-        for (int axis = 0; axis < 3; ++axis) {
-            __m128 lo = _mm_load_ps(node.lo[axis]), hi = _mm_load_ps(node.hi[axis]);
-            __m128 t_near = _mm_mul_ps(_mm_sub_ps(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
-            __m128 t_far = _mm_mul_ps(_mm_sub_ps(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
-            t0 = _mm_max_ps(t_near, t0);
-            t1 = _mm_min_ps(t_far, t1);
-        }
-        _mm_storeu_ps(t_entry, t0);
-        return _mm_movemask_ps(_mm_cmple_ps(t0, _mm_mul_ps(t1, _mm_set1_ps(BoxWiden))));
-    }
-};
-#endif
 
 template <bool AnyHit>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
