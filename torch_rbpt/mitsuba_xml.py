@@ -312,25 +312,20 @@ class XMLReader:
     def _transform_op(self, op, w: str) -> Transform:
         """One <translate>, <scale>, <rotate>, <matrix> or <lookat> as a Transform."""
         tag = op.tag
+
+        def xyz(default: str) -> list:
+            """The operation's vector: its `value` attribute, or x, y, z (each `default`)."""
+            if op.get("value") is not None:
+                return _numbers(self._attr(op, "value", w), w, tag)
+            return [float(self._attr(op, c, w, default)) for c in "xyz"]
+
         if tag == "translate":
-            if op.get("value") is not None:
-                v = _numbers(self._attr(op, "value", w), w, "translate")
-            else:
-                v = [float(self._attr(op, c, w, "0")) for c in "xyz"]
-            m = Transform.translate(v)
+            m = Transform.translate(xyz("0"))
         elif tag == "scale":
-            if op.get("value") is not None:
-                v = _numbers(self._attr(op, "value", w), w, "scale")
-                v = v * 3 if len(v) == 1 else v
-            else:
-                v = [float(self._attr(op, c, w, "1")) for c in "xyz"]
-            m = Transform.scale(v)
+            v = xyz("1")
+            m = Transform.scale(v * 3 if len(v) == 1 else v)
         elif tag == "rotate":
-            if op.get("value") is not None:
-                axis = _numbers(self._attr(op, "value", w), w, "rotate")
-            else:
-                axis = [float(self._attr(op, c, w, "0")) for c in "xyz"]
-            m = Transform.rotate(axis, float(self._attr(op, "angle", w)))
+            m = Transform.rotate(xyz("0"), float(self._attr(op, "angle", w)))
         elif tag == "matrix":
             v = _numbers(self._attr(op, "value", w), w, "matrix")
             if len(v) == 9:
