@@ -71,3 +71,38 @@ def shared():
     if not SHARED.exists():
         pytest.skip(f"shared scenes not found at {SHARED}")
     return SHARED
+
+
+def directional_derivatives(scene, key: str, w, direction, spp: int, n_seeds: int,
+                            h: float | None = None, forward_seed: int | None = None) -> dict:
+    """Samples of the derivative of the linear loss sum(w * render(scene)) along `direction`
+    in parameter `key`, one per seed s < n_seeds, as float64 tensors:
+    - "backward": reverse mode, rendered with seed s (and its own, independent backward seed);
+    - "fd" (with step h): the central difference (p + h direction, p - h direction), both
+      sides rendered with seed 1000 + s (common random numbers);
+    - "forward" (with forward_seed): forward mode with seed forward_seed + s.
+    The parameter's value is restored afterwards."""
+    p = scene.params[key].detach().clone()
+    out = {"backward": []}
+    if h is not None:
+        out["fd"] = []
+    if forward_seed is not None:
+        out["forward"] = []
+    for s in range(n_seeds):
+        x = p.clone().requires_grad_()
+        scene.params[key] = x
+        (grad,) = torch.autograd.grad((w * tr.render(scene, spp=spp, seed=s)).sum(), [x])
+        out["backward"].append(float((grad * direction).sum()))
+        scene.params[key] = p.clone()
+        with torch.no_grad():
+            if forward_seed is not None:
+                d = tr.render_forward(scene, {key: direction}, spp=spp, seed=forward_seed + s)
+                out["forward"].append(float((w * d).sum()))
+            if h is not None:
+                scene.params[key] = p + h * direction
+                up = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
+                scene.params[key] = p - h * direction
+                down = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
+                out["fd"].append(float((up - down) / (2 * h)))
+        scene.params[key] = p.clone()
+    return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import ROOT
+from conftest import ROOT, directional_derivatives
 
 D = torch.float64
 
@@ -223,22 +223,8 @@ def test11_independent_seeds_are_unbiased(tmp_path):
         p = scene.params[key]
         direction = torch.rand(p.shape, generator=g, dtype=D) + 0.5
         h = 1e-2 * float(p.abs().mean())
-        rev, fwd, fd = [], [], []
-        for s in range(n_seeds):
-            x = p.detach().clone().requires_grad_()
-            scene.params[key] = x
-            (grad,) = torch.autograd.grad((w * tr.render(scene, spp=spp, seed=s)).sum(), [x])
-            rev.append(float((grad * direction).sum()))
-            scene.params[key] = p.detach()
-            with torch.no_grad():
-                fwd.append(float((w * tr.render_forward(scene, {key: direction}, spp=spp, seed=5000 + s)).sum()))
-                scene.params[key] = p.detach() + h * direction
-                up = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-                scene.params[key] = p.detach() - h * direction
-                down = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-            fd.append(float((up - down) / (2 * h)))
-            scene.params[key] = p.detach()
-        rev, fwd, fd = (torch.tensor(v, dtype=D) for v in (rev, fwd, fd))
+        d = directional_derivatives(scene, key, w, direction, spp, n_seeds, h=h, forward_seed=5000)
+        rev, fwd, fd = d["backward"], d["forward"], d["fd"]
         se = lambda a, b: math.sqrt(a.var() / n_seeds + b.var() / n_seeds)  # noqa: E731
         print(f"{key:36s} backward {rev.mean():+.4f}  forward {fwd.mean():+.4f}  "
               f"finite diff. {fd.mean():+.4f}  (stderr {se(rev, fd):.4f})")

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import REFERENCES
+from conftest import REFERENCES, directional_derivatives
 
 FOLDER = REFERENCES / "sensors_samplers"
 SAMPLERS = ["stratified", "multijitter", "orthogonal", "ldsampler"]
@@ -234,19 +234,11 @@ def test11_gradients_with_independent_backward_samples_are_unbiased(sampler):
     scene = tr.load_file(FOLDER / "samplers.xml", sampler=sampler, dtype=D)
     scene.sensor.film.width, scene.sensor.film.height = 12, 9
     key = "red_ball.bsdf.reflectance.value"
-    p = scene.params[key]
     w = torch.rand(9, 12, 3, generator=torch.Generator().manual_seed(4), dtype=D)
     direction = torch.tensor([1.0, 0.5, 0.25], dtype=D)
-    n_seeds, rev, fwd = 48, [], []
-    for s in range(n_seeds):
-        x = p.detach().clone().requires_grad_()
-        scene.params[key] = x
-        (g,) = torch.autograd.grad((w * tr.render(scene, spp=16, seed=s)).sum(), [x])
-        rev.append(float((g * direction).sum()))
-        scene.params[key] = p.detach()
-        with torch.no_grad():
-            fwd.append(float((w * tr.render_forward(scene, {key: direction}, spp=16, seed=1000 + s)).sum()))
-    rev, fwd = torch.tensor(rev, dtype=D), torch.tensor(fwd, dtype=D)
+    n_seeds = 48
+    d = directional_derivatives(scene, key, w, direction, 16, n_seeds, forward_seed=1000)
+    rev, fwd = d["backward"], d["forward"]
     se = math.sqrt(rev.var() / n_seeds + fwd.var() / n_seeds)
     print(f"{sampler}: backward {rev.mean():+.4f}, forward {fwd.mean():+.4f} (stderr {se:.4f})")
     assert abs(float(rev.mean() - fwd.mean())) < 4 * se

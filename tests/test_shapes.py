@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import REFERENCES
+from conftest import REFERENCES, directional_derivatives
 
 SHAPES = REFERENCES / "shapes"
 
@@ -260,20 +260,8 @@ def test11_mesh_attribute_gradients_are_unbiased(colored):
         p = scene.params[key]
         direction = torch.rand(p.shape, generator=g, dtype=torch.float64) + 0.5
         h = 1e-2 * float(p.abs().mean())
-        rev, fd = [], []
-        for s in range(n_seeds):
-            x = p.detach().clone().requires_grad_()
-            scene.params[key] = x
-            (grad,) = torch.autograd.grad((w * tr.render(scene, spp=spp, seed=s)).sum(), [x])
-            rev.append(float((grad * direction).sum()))
-            with torch.no_grad():
-                scene.params[key] = p.detach() + h * direction
-                up = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-                scene.params[key] = p.detach() - h * direction
-                down = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-            fd.append(float((up - down) / (2 * h)))
-            scene.params[key] = p.detach()
-        rev, fd = torch.tensor(rev), torch.tensor(fd)
+        d = directional_derivatives(scene, key, w, direction, spp, n_seeds, h=h)
+        rev, fd = d["backward"], d["fd"]
         se = math.sqrt(rev.var() / n_seeds + fd.var() / n_seeds)
         print(f"{key}: backward {rev.mean():+.4f} finite diff. {fd.mean():+.4f} (stderr {se:.4f})")
         assert abs(rev.mean() - fd.mean()) < 4 * se

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import REFERENCES, bsdf_scene, query_bsdf
+from conftest import REFERENCES, bsdf_scene, directional_derivatives, query_bsdf
 
 # Mitsuba 3.9.1: R(u) at v = 0.25 for the 4x2 image with texel (x, y) = (x, y, 10y + x).
 U = [-0.3, -0.05, 0.02, 0.98, 1.05, 1.3, 1.6]
@@ -168,24 +168,11 @@ def test09_checkerboard_gradient_is_unbiased_with_independent_seeds():
     res, spp, n = 4, 4, 64
     scene = _checker_box(res, plastic=True)
     key = "floor.bsdf.diffuse_reflectance.color0.value"
-    p = scene.params[key].detach().clone()
     w = torch.rand(res, res, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     direction = torch.tensor([1.0, 0.5, 0.8], dtype=torch.float64)
     h = 1e-2
-    rev, fd = [], []
-    for s in range(n):
-        x = p.clone().requires_grad_()
-        scene.params[key] = x
-        (g,) = torch.autograd.grad((w * tr.render(scene, spp=spp, seed=s)).sum(), [x])
-        rev.append(float((g * direction).sum()))
-        with torch.no_grad():
-            scene.params[key] = p + h * direction
-            up = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-            scene.params[key] = p - h * direction
-            down = (w * tr.render(scene, spp=spp, seed=1000 + s)).sum()
-        fd.append(float((up - down) / (2 * h)))
-    scene.params[key] = p
-    rev, fd = torch.tensor(rev), torch.tensor(fd)
+    d = directional_derivatives(scene, key, w, direction, spp, n, h=h)
+    rev, fd = d["backward"], d["fd"]
     se = math.sqrt(rev.var() / n + fd.var() / n)
     assert abs(rev.mean() - fd.mean()) < 4 * se
     assert abs(float(rev.mean())) > 4 * float(rev.std()) / math.sqrt(n)  # resolved, not ~0
