@@ -941,7 +941,7 @@ class _Builder:
                 warnings.warn(f"{_where(value)}: a top-level sampler is ignored, as Mitsuba 3 "
                               f"ignores it; nest it in the sensor to use it", UserWarning, stacklevel=3)
             # A top-level film, rfilter or sampler is used where a sensor (or film) references it.
-        return Scene(self.native, self.params, sensors or [Sensor()], integrator, source, self.fixed)
+        return Scene(self.native, self.params, sensors, integrator, source, self.fixed)
 
 
 def load_dict(scene: dict, dtype: torch.dtype = torch.float32, base_dir=None) -> Scene:
