@@ -189,7 +189,7 @@ private:
         nodes_.emplace_back(a, b, kind, da, db);  // built in place
         return int32_t(nodes_.size() - 1);
     }
-    int32_t push_op(int32_t a, const RGB<T> &da, int32_t b, const RGB<T> &db) {
+    [[gnu::noinline]] int32_t push_op(int32_t a, const RGB<T> &da, int32_t b, const RGB<T> &db) {
         if (a < 0) return push(b, -1, Kind::Op, db, RGB<T>());
         return push(a, b, Kind::Op, da, db);
     }
@@ -337,19 +337,19 @@ public:
     /// Result of a componentwise function of `a`: value `value`, derivative `partial()`
     /// (called only when the result is recorded).
     template <typename P>
-    static Var unary(const RGB<T> &value, const Var &a, P partial) {
+    [[gnu::always_inline]] static Var unary(const RGB<T> &value, const Var &a, P partial) {
         Var r(value);
-        if (a.node_ >= 0 && detail::recording)
+        if (__builtin_expect(a.node_ >= 0, 0) && detail::recording)
             r.node_ = Tape<T>::local().push_op(a.node_, partial(), -1, RGB<T>());
         return r;
     }
     /// Result of a componentwise function of `a` and `b`: value `value`, partial derivatives
     /// `partial_a()` and `partial_b()` (called only for recorded operands).
     template <typename PA, typename PB>
-    static Var binary(const RGB<T> &value, const Var &a, const Var &b, PA partial_a,
-                      PB partial_b) {
+    [[gnu::always_inline]] static Var binary(const RGB<T> &value, const Var &a, const Var &b,
+                                             PA partial_a, PB partial_b) {
         Var r(value);
-        if ((a.node_ >= 0 || b.node_ >= 0) && detail::recording) {
+        if (__builtin_expect((a.node_ & b.node_) >= 0, 0) && detail::recording) {
             r.node_ = Tape<T>::local().push_op(a.node_, a.node_ >= 0 ? partial_a() : RGB<T>(),
                                                b.node_, b.node_ >= 0 ? partial_b() : RGB<T>());
         }
@@ -358,19 +358,19 @@ public:
 
     /// Componentwise arithmetic; scalars and RGB<T> operands convert to constants, so only
     /// operands that are recorded become parents.
-    friend Var operator+(const Var &a, const Var &b) {
+    [[gnu::always_inline]] friend Var operator+(const Var &a, const Var &b) {
         return binary(a.value_ + b.value_, a, b, [] { return RGB<T>(T(1)); },
                       [] { return RGB<T>(T(1)); });
     }
-    friend Var operator-(const Var &a, const Var &b) {
+    [[gnu::always_inline]] friend Var operator-(const Var &a, const Var &b) {
         return binary(a.value_ - b.value_, a, b, [] { return RGB<T>(T(1)); },
                       [] { return RGB<T>(T(-1)); });
     }
-    friend Var operator*(const Var &a, const Var &b) {
+    [[gnu::always_inline]] friend Var operator*(const Var &a, const Var &b) {
         return binary(a.value_ * b.value_, a, b, [&] { return b.value_; },
                       [&] { return a.value_; });
     }
-    friend Var operator/(const Var &a, const Var &b) {
+    [[gnu::always_inline]] friend Var operator/(const Var &a, const Var &b) {
         RGB<T> q = a.value_ / b.value_;
         return binary(q, a, b, [&] { return T(1) / b.value_; },
                       [&] { return T(-1) * q / b.value_; });

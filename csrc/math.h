@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 
 namespace rbpt {
@@ -25,8 +26,18 @@ constexpr float MachineEpsilon = 5.9604644775390625e-8f;
 constexpr float gamma(int n) { return (float(n) * MachineEpsilon) / (1.f - float(n) * MachineEpsilon); }
 
 /// The next float above / below v (for rounding ray origins away from a surface).
-inline float next_float_up(float v) { return std::nextafter(v, Infinity); }
-inline float next_float_down(float v) { return std::nextafter(v, -Infinity); }
+/// (std::nextafter, but inline: libm's is an out-of-line call on every spawned ray.)
+inline float next_float_up(float v) {
+    if (!(v < Infinity)) return v;  // +inf and NaN stay
+    uint32_t bits;
+    std::memcpy(&bits, &v, sizeof bits);
+    if (v == 0.f) bits = 1u;  // +0 and -0 step to the smallest positive denormal
+    else if (v > 0.f) ++bits;
+    else --bits;
+    std::memcpy(&v, &bits, sizeof v);
+    return v;
+}
+inline float next_float_down(float v) { return -next_float_up(-v); }
 
 struct Vec2 {
     float x = 0, y = 0;
