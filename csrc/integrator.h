@@ -61,6 +61,13 @@ BSDFEval<S> bsdf_eval_for(const BSDF &bsdf, const RenderContext<S> &ctx, int ind
     return bsdf_eval_pdf<S>(bsdf, ctx, index, si, wo);
 }
 
+/// The shadow ray from `si` towards a sampled emitter point (or direction, for the
+/// environment).
+template <typename S>
+Ray shadow_ray(const SurfaceInteraction &si, const EmitterSample<S> &es) {
+    return std::isinf(es.dist) ? si.spawn_ray(es.d) : si.spawn_ray_to(es.p);
+}
+
 template <typename S>
 S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
     const Scene &scene = ctx.scene;
@@ -87,13 +94,13 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         int bsdf_index = scene.bsdf_at(si);
         const BSDF &bsdf = scene.bsdfs[bsdf_index];
 
-        // Sample an emitter and add its MIS-weighted direct illumination.
+        // Sample an emitter and add its MIS-weighted direct illumination. The BSDF comes
+        // first: where it is null (e.g. the emitter is below the horizon), no shadow ray.
         if (bsdf.smooth()) {
             auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
             if (es && !is_null(es->weight)) {
-                Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
-                if (!scene.occluded(shadow)) {
-                    BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+                BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+                if (!is_null(f.value) && !scene.occluded(shadow_ray(si, *es))) {
                     float w = es->delta ? 1.f : mis_weight(es->pdf, f.pdf);
                     L += beta * f.value * es->weight * real_t<S>(w);
                 }
@@ -148,9 +155,8 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
         for (int i = 0; i < cfg.emitter_samples; ++i) {
             auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
             if (!es || is_null(es->weight)) continue;
-            Ray shadow = std::isinf(es->dist) ? si.spawn_ray(es->d) : si.spawn_ray_to(es->p);
-            if (scene.occluded(shadow)) continue;
             BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+            if (is_null(f.value) || scene.occluded(shadow_ray(si, *es))) continue;
             float w = es->delta ? 1.f : mis_weight(es->pdf * frac_e, f.pdf * frac_b);
             L += f.value * es->weight * real_t<S>(w / n_e);
         }

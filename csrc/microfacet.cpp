@@ -61,16 +61,19 @@ void sample_visible_11_beckmann(float cos_i, float u1, float u2, float *sx, floa
     // (e^-cot^2 is below 1e-35 beyond cot = 9: skip libm's slow underflow path.)
     float tail = cot_i < 9.f ? InvSqrtPi * tan_i * std::exp(-cot_i * cot_i) : 0.f;
     float normalization = 1.f / (1.f + c + tail);
+    bool converged = false;
+    float inv_erf = 0.f;
     for (int it = 0; it < 100; ++it) {
         if (!(b >= a && b <= c)) b = 0.5f * (a + c);
-        float inv_erf = erfinv(b);
+        inv_erf = erfinv(b);
         float value = normalization * (1.f + b + InvSqrtPi * tan_i * std::exp(-inv_erf * inv_erf)) - u1;
         float derivative = normalization * (1.f - inv_erf * tan_i);
-        if (std::abs(value) < 1e-6f) break;
+        converged = std::abs(value) < 1e-6f;
+        if (converged) break;
         if (value > 0.f) c = b; else a = b;
         b -= value / derivative;
     }
-    *sx = erfinv(b);
+    *sx = converged ? inv_erf : erfinv(b);  // the converged step already inverted b
     *sy = erfinv(2.f * u2 - 1.f);
 }
 

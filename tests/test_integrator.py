@@ -117,3 +117,31 @@ def test09_bad_arguments_raise():
         tr.render(scene, spp=0)
     with pytest.raises(ValueError, match="seed"):
         tr.render(scene, spp=1, seed=-1)
+
+
+@pytest.mark.parametrize("integrator", [{"type": "path", "max_depth": 2}, {"type": "direct"}])
+def test10_no_shadow_ray_towards_an_emitter_the_bsdf_cannot_reflect(integrator):
+    # A diffuse floor seen from above, lit by a point light below it: the BSDF is zero for
+    # every emitter sample, so no shadow ray is cast (only camera rays and BSDF rays), and
+    # the image is black. With the light above, every floor sample also casts a shadow ray.
+    from torch_rbpt.render import render_with_stats
+
+    def floor_scene(light_y):
+        return tr.load_dict({
+            "type": "scene", "integrator": integrator,
+            "sensor": {"type": "perspective", "fov": 30,
+                       "to_world": tr.Transform.look_at([0, 5, 0.01], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}}},
+            "floor": {"type": "rectangle",
+                      "to_world": tr.Transform.rotate([1, 0, 0], -90) @ tr.Transform.scale([10, 10, 10]),
+                      "bsdf": {"type": "diffuse"}},
+            "light": {"type": "point", "position": [0, light_y, 0], "intensity": 1.0},
+        })
+
+    samples = 4 * 4 * 8
+    image, rays = render_with_stats(floor_scene(-1.0), 8)
+    assert rays == 2 * samples  # camera ray + BSDF ray (which escapes)
+    assert float(image.abs().max()) == 0.0
+    image, rays = render_with_stats(floor_scene(1.0), 8)
+    assert rays == 3 * samples
+    assert float(image.min()) > 0.0
