@@ -4,7 +4,8 @@ Install with `pip install --no-build-isolation -e .` after torch (see the Makefi
 Set DEBUG=1 for an unoptimised build with debug symbols, SANITIZE=1 for one instrumented with
 AddressSanitizer and UndefinedBehaviorSanitizer (`SANITIZE=1 make test` preloads their runtime).
 The optimised build targets the machine it is built on (-march=native; floating-point
-contraction stays off, so results keep their rounding); PORTABLE=1 builds for baseline x86-64.
+contraction stays off, so results keep their rounding); MARCH=<cpu> targets another CPU
+(e.g. MARCH=x86-64-v3 for any AVX2 machine), PORTABLE=1 builds for baseline x86-64.
 """
 import glob
 import os
@@ -16,6 +17,7 @@ debug = os.environ.get("DEBUG", "0") == "1"
 sanitize = os.environ.get("SANITIZE", "0") == "1"
 cxx_flags = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare"]
 portable = os.environ.get("PORTABLE", "0") == "1"
+march = os.environ.get("MARCH", "native")
 link_flags = ["-fopenmp"]
 if sanitize:
     # Assertions stay on: the sanitized build is the one that looks for bugs.
@@ -27,7 +29,7 @@ elif debug:
 else:
     # No errno from libm (nothing reads it): sqrt inlines without a call on the error path.
     cxx_flags += ["-O3", "-DNDEBUG", "-ffp-contract=off", "-fno-math-errno"]
-    cxx_flags += [] if portable else ["-march=native"]
+    cxx_flags += [] if portable else [f"-march={march}"]
 
 setup(
     name="torch_rbpt",

@@ -31,6 +31,12 @@ version/variant and date head every table and are in every plot's title.
 
     python benchmarks/bench_error_time.py [--scenes cbox glossy] [--res 256]
         [--spp 4 16 64 256] [--ref-spp 4096] [--repeats 3] [--quick] [--no-mitsuba]
+        [--mitsuba-isa avx2] [--out DIR]
+
+--mitsuba-isa avx2 compiles Mitsuba's kernels as on an AVX2-only machine (Haswell, 8 lanes
+instead of AVX-512's 16); with torch_rbpt built by `MARCH=x86-64-v3 pip install
+--no-build-isolation -e .`, both renderers run as they would there (Embree still uses the
+host's AVX-512, so Mitsuba's ray casting is a little faster than on a real AVX2 machine).
 
 --res is the film width; the height follows each scene's aspect ratio (veach-mis is 3:2,
 the others square). The default run (6 scenes, 256 wide, 4..256 spp, 3 repeats, 4096 spp
@@ -141,12 +147,14 @@ def time_at_error(curve: list[tuple[float, float]], err: float) -> tuple[float, 
 
 
 def machine_info(mitsuba: bool) -> dict:
-    info = {"cpu": cpu_model(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+    info = {"cpu": f"{cpu_model()}, torch_rbpt built for {tr._C.build_isa}", "cores": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__, "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
             "mitsuba": ""}
     if mitsuba:
         import drjit as dr
-        info["mitsuba"] = f"Mitsuba {mitsuba_ref.version()} {mitsuba_ref.variant()} ({dr.thread_count()} threads)"
+        info["mitsuba"] = (f"Mitsuba {mitsuba_ref.version()} {mitsuba_ref.variant()} "
+                           f"({dr.thread_count()} threads, {mitsuba_ref.isa()})")
     return info
 
 
@@ -418,6 +426,9 @@ def parse_args(argv=None):
     ap.add_argument("--repeats", type=int, default=3, help="timed renders per spp (best time, mean error)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 64x64, spp 4 16, ref 256 spp, 1 repeat")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only, even if Mitsuba is installed")
+    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
+                    help="avx2: Mitsuba's kernels compiled for Haswell with 8 lanes, as on an "
+                         "AVX2-only machine (build ours with MARCH=x86-64-v3 for the same)")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--cache", type=Path, default=HERE / "cache")
     args = ap.parse_args(argv)
@@ -436,6 +447,7 @@ def main(argv=None) -> list[dict]:
         print("Mitsuba: not run (--no-mitsuba); references are our own renders.")
     elif mitsuba_ref.available():
         use_mitsuba = True
+        mitsuba_ref.set_isa(args.mitsuba_isa)
     else:
         print("Mitsuba 3 is not available: skipping Mitsuba's renders, the time ratios and the "
               "Mitsuba references (references are our own renders). To install it: "

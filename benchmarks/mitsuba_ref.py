@@ -74,6 +74,45 @@ def version() -> str:
     return _mitsuba().__version__
 
 
+# Dr.Jit's LLVM backend compiles its kernels for the host CPU (16 lanes with AVX-512, 8 with
+# AVX2). For a comparison as on an AVX2-only machine, it can target Haswell with 8 lanes
+# instead (Embree, called from the kernels, still picks its own instruction set at run time).
+_ISA_TARGETS = {"avx2": (b"haswell", b"+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+lzcnt,+popcnt,+sse4.2,"
+                                     b"-avx512f,-avx512vl,-avx512dq,-avx512bw,-avx512cd", 8)}
+
+
+def _drjit_core():
+    import ctypes
+    import drjit as dr
+    return ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+
+
+def set_isa(isa: str) -> None:
+    """Make the LLVM backend compile for `isa` ('native' or 'avx2'); call before rendering
+    (kernels compiled earlier keep their target). Raises if this Dr.Jit cannot be retargeted."""
+    _mitsuba()
+    if isa == "native":
+        return
+    if isa not in _ISA_TARGETS or variant().startswith("scalar"):
+        raise ValueError(f"cannot target {isa!r} with variant {variant()}")
+    try:
+        # jit_llvm_set_target(const char *cpu, const char *features, uint32_t vector_width)
+        setter = getattr(_drjit_core(), "_Z19jit_llvm_set_targetPKcS0_j")
+    except (OSError, AttributeError) as e:
+        raise RuntimeError(f"this Dr.Jit build has no jit_llvm_set_target: {e}") from e
+    setter(*_ISA_TARGETS[isa])
+
+
+def isa() -> str:
+    """The LLVM backend's target CPU and lanes, e.g. 'znver5, 16 lanes' ('' for scalar)."""
+    if variant().startswith("scalar"):
+        return ""
+    import ctypes
+    core = _drjit_core()
+    core._Z19jit_llvm_target_cpuv.restype = ctypes.c_char_p
+    return f"{core._Z19jit_llvm_target_cpuv().decode()}, {core._Z21jit_llvm_vector_widthv()} lanes"
+
+
 # ----------------------------------------------------------------------------- scene loading
 
 def _inline(root: ET.Element, folder: str, search: list) -> None:

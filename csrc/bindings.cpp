@@ -799,6 +799,16 @@ int add_checkerboard(Scene &scene, int color0, int color1,
 
 PYBIND11_MODULE(_C, m) {
     m.doc() = "torch_rbpt's C++ core";
+    // The widest vector extension the extension was compiled for (benchmark headers).
+#if defined(__AVX512F__)
+    m.attr("build_isa") = "avx512";
+#elif defined(__AVX2__)
+    m.attr("build_isa") = "avx2";
+#elif defined(__AVX__)
+    m.attr("build_isa") = "avx";
+#else
+    m.attr("build_isa") = "sse2";
+#endif
     py::class_<Scene>(m, "Scene")
         .def(py::init<>())
         .def("add_param",
