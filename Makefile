@@ -66,6 +66,7 @@ bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_tutorial.py
 	$(PYTHON) benchmarks/bench_gradients.py
 	$(PYTHON) benchmarks/bench_rays.py
+	$(PYTHON) benchmarks/bench_profile.py
 
 # Fuzz each loader (XML, dict, OBJ, PLY, images) for FUZZ_SECONDS seconds, one target at a
 # time, starting from fuzz/seeds/<target>; not part of `make test`. New inputs that reach new
