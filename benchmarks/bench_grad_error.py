@@ -327,6 +327,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--kinds", nargs="+", default=None, help="subset of: reflectance texture roughness roughplastic")
     ap.add_argument("--quick", action="store_true", help="res 16, spp 2 8, 2 seeds, ref 64 spp")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only")
+    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
+                    help="avx2: Mitsuba's kernels for Haswell with 8 lanes (see bench_error_time.py)")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--cache", default=str(HERE / "cache"))
     args = ap.parse_args(argv)
@@ -340,13 +342,16 @@ def main(argv=None) -> dict:
         use_mi = mitsuba_ref.available()
         if not use_mi:
             why = "Mitsuba not available"
+        else:
+            mitsuba_ref.set_isa(args.mitsuba_isa)
     mi_version = mitsuba_ref.version() if use_mi else ""
     if not use_mi:
         print(f"Mitsuba 3 skipped ({why}): only torch_rbpt runs, errors are against its own "
               f"reference. To compare, {INSTALL_HINT}.")
-    header = dict(cpu=cpu_model(), cores=os.cpu_count(), torch_threads=torch.get_num_threads(),
+    header = dict(cpu=f"{cpu_model()}, torch_rbpt built for {tr._C.build_isa}", cores=os.cpu_count(),
+                  torch_threads=torch.get_num_threads(),
                   date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
-                  mitsuba=f"{mi_version} ({mitsuba_ref.variant()})" if use_mi else "skipped")
+                  mitsuba=f"{mi_version} ({mitsuba_ref.variant()}, {mitsuba_ref.isa()})" if use_mi else "skipped")
 
     all_kinds = kinds(cache)
     names = args.kinds or list(all_kinds)

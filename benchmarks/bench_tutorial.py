@@ -74,13 +74,14 @@ def run_ours(cfg: dict, marks: dict) -> tuple:
         times.append(time.perf_counter() - start)
     final = [float(x) for x in param.detach()]
     marks["done"] = time.time()
-    return final, times, losses, {"torch_threads": torch.get_num_threads()}
+    return final, times, losses, {"torch_threads": f"{torch.get_num_threads()} (built for {tr._C.build_isa})"}
 
 
 def run_mitsuba(cfg: dict, marks: dict) -> tuple:
     sys.path.insert(0, str(HERE))
     import mitsuba_ref
     mi = mitsuba_ref._mitsuba()  # sets DRJIT_LIBLLVM_PATH, variant llvm_ad_rgb
+    mitsuba_ref.set_isa(cfg.get("mitsuba_isa", "native"))
     import drjit as dr
     import numpy as np
     marks["imported"] = time.time()
@@ -110,7 +111,7 @@ def run_mitsuba(cfg: dict, marks: dict) -> tuple:
         times.append(time.perf_counter() - start)
     final = [float(x) for x in np.array(params[KEY], dtype=np.float64).ravel()]
     marks["done"] = time.time()
-    return final, times, losses, {"mitsuba": f"{mi.__version__} ({mi.variant()})"}
+    return final, times, losses, {"mitsuba": f"{mi.__version__} ({mi.variant()}, {mitsuba_ref.isa()})"}
 
 
 def worker(renderer: str, cfg: dict, out: str) -> None:
@@ -147,6 +148,8 @@ def main(argv=None) -> list:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help=f"{QUICK}")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only")
+    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
+                    help="avx2: Mitsuba's kernels for Haswell with 8 lanes (see bench_error_time.py)")
     ap.add_argument("--repeats", type=int, default=1, help="fresh processes per renderer (best cold kept)")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--worker", choices=["ours", "mitsuba"], help=argparse.SUPPRESS)
@@ -157,7 +160,7 @@ def main(argv=None) -> list:
         worker(args.worker, json.loads(args.worker_cfg), args.worker_out)
         return []
 
-    cfg = QUICK if args.quick else TUTORIAL
+    cfg = dict(QUICK if args.quick else TUTORIAL, mitsuba_isa=args.mitsuba_isa)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     renderers = ["ours"]

@@ -189,7 +189,7 @@ private:
         nodes_.emplace_back(a, b, kind, da, db);  // built in place
         return int32_t(nodes_.size() - 1);
     }
-    [[gnu::noinline]] int32_t push_op(int32_t a, const RGB<T> &da, int32_t b, const RGB<T> &db) {
+    int32_t push_op(int32_t a, const RGB<T> &da, int32_t b, const RGB<T> &db) {
         if (a < 0) return push(b, -1, Kind::Op, db, RGB<T>());
         return push(a, b, Kind::Op, da, db);
     }
