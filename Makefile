@@ -20,10 +20,14 @@ else
 MODE = release
 SANITIZER_ENV =
 endif
+# MARCH=<cpu> builds the extension for another CPU than this one (setup.py), e.g. x86-64-v3
+# for any AVX2 machine; `make bench-avx2` uses it.
+MARCH ?=
+export MARCH
 # One stamp per build mode; building one mode removes the other's stamp, so switching rebuilds.
-STAMP = .installed-$(MODE)
+STAMP = .installed-$(MODE)$(if $(MARCH),-$(MARCH))
 
-.PHONY: install demo test test-slow bench soak fuzz clean
+.PHONY: install demo test test-slow bench bench-avx2 soak fuzz clean
 
 # Install torch (local CPU wheel, pinned so pip never resolves a CUDA build), the other
 # dependencies, and build the extension in place. Re-runs when a C++ source changes.
@@ -67,6 +71,15 @@ bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_gradients.py
 	$(PYTHON) benchmarks/bench_rays.py
 	$(PYTHON) benchmarks/bench_profile.py
+
+# The comparison as on an AVX2-only machine: ours built for x86-64-v3, Mitsuba's kernels
+# compiled for Haswell with 8 lanes; results in benchmarks/results/avx2. A later plain `make`
+# rebuilds for this machine.
+bench-avx2:
+	$(MAKE) MARCH=x86-64-v3 install
+	$(PYTHON) benchmarks/bench_error_time.py --mitsuba-isa avx2 --out benchmarks/results/avx2
+	$(PYTHON) benchmarks/bench_grad_error.py --mitsuba-isa avx2 --out benchmarks/results/avx2
+	$(PYTHON) benchmarks/bench_tutorial.py --mitsuba-isa avx2 --out benchmarks/results/avx2
 
 # Fuzz each loader (XML, dict, OBJ, PLY, images) for FUZZ_SECONDS seconds, one target at a
 # time, starting from fuzz/seeds/<target>; not part of `make test`. New inputs that reach new

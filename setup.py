@@ -17,7 +17,7 @@ debug = os.environ.get("DEBUG", "0") == "1"
 sanitize = os.environ.get("SANITIZE", "0") == "1"
 cxx_flags = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare"]
 portable = os.environ.get("PORTABLE", "0") == "1"
-march = os.environ.get("MARCH", "native")
+march = os.environ.get("MARCH") or "native"
 link_flags = ["-fopenmp"]
 if sanitize:
     # Assertions stay on: the sanitized build is the one that looks for bugs.
