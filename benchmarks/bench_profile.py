@@ -114,7 +114,7 @@ def profile(kind: str, scene_file: Path, res: int, spp: int, renders: int, tmp: 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=["cbox", "cornell-box", "veach-mis", "bunny_box"],
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES),
                     choices=list(SCENES))
     ap.add_argument("--res", type=int, default=256, help="film width (height keeps the aspect)")
     ap.add_argument("--spp", type=int, default=64)
