@@ -850,6 +850,14 @@ PYBIND11_MODULE(_C, m) {
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
     m.def("interact_rays", &interact_rays);
+    m.def("sample_count", [](const py::dict &camera, int spp) {
+        if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
+        SamplerDesc s = make_sampler(camera);
+        s.set_sample_count(uint32_t(spp));
+        return int(s.sample_count);
+    }, py::arg("camera"), py::arg("spp"),
+          "The samples per pixel a render at `spp` takes: the sensor's sampler rounds it as "
+          "Mitsuba's set_sample_count does (stratified to a square, ...).");
     m.def("sampler_points", &sampler_points, py::arg("camera"), py::arg("spp"), py::arg("seed"),
           py::arg("pixel"), py::arg("dims"));
     m.def("camera_rays", &camera_rays, py::arg("camera"), py::arg("positions"), py::arg("apertures"));

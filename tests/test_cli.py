@@ -30,3 +30,17 @@ def test02_errors_are_reported_without_a_traceback(tmp_path):
     assert "error:" in r.stderr and "no/such/scene.xml" in r.stderr and "Traceback" not in r.stderr
     r = _run("render", "torch_rbpt/scenes/cornell_box.xml", "-o", str(tmp_path / "x.exr"), "-D", "resolution")
     assert r.returncode == 2 and "NAME=VALUE" in r.stderr
+
+
+def test03_reports_the_sample_count_the_sampler_takes(tmp_path):
+    # A stratified sampler rounds 10 spp up to 16 (a square), as Mitsuba's; the CLI says so.
+    xml = (ROOT / "torch_rbpt/scenes/cornell_box.xml").read_text()
+    scene_file = tmp_path / "stratified.xml"
+    scene_file.write_text(xml.replace('<sampler type="independent">', '<sampler type="stratified">'))
+    r = _run("render", str(scene_file), "-o", str(tmp_path / "s.exr"), "--spp", "10", "-D", "res=8")
+    assert r.returncode == 0, r.stderr
+    assert "16 spp (stratified sampler: 10 rounded to 16)" in r.stdout
+    r = _run("render", "torch_rbpt/scenes/cornell_box.xml", "-o", str(tmp_path / "i.exr"), "--spp", "10",
+             "-D", "res=8")
+    assert r.returncode == 0, r.stderr
+    assert "10 spp," in r.stdout and "rounded" not in r.stdout

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
+from torch_rbpt.scene import Sensor
 from conftest import REFERENCES, directional_derivatives
 
 FOLDER = REFERENCES / "sensors_samplers"
@@ -52,8 +53,10 @@ ROUNDING = {
 
 @pytest.mark.parametrize("sampler", list(ROUNDING))
 def test01_sample_count_is_rounded_as_mitsuba_rounds_it(sampler):
+    sensor = Sensor(sampler=sampler)
     for spp, expected in ROUNDING[sampler].items():
         assert points(sampler, spp, dims=(1,)).shape[0] == expected, (sampler, spp)
+        assert sensor.sample_count(spp) == expected, (sampler, spp)  # what the CLI reports
 
 
 def test02_render_uses_the_rounded_count_and_xml_parameters():

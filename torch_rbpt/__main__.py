@@ -56,7 +56,9 @@ def main(argv=None) -> int:
     write_image(out, image)
     if out.suffix.lower() == ".exr":
         write_image(out.with_suffix(".png"), image)
-    print(f"{image.shape[1]}x{image.shape[0]}, {spp} spp, {elapsed:.2f} s -> {out}")
+    taken = scene.sensor.sample_count(spp)
+    rounded = f" ({scene.sensor.sampler} sampler: {spp} rounded to {taken})" if taken != spp else ""
+    print(f"{image.shape[1]}x{image.shape[0]}, {taken} spp{rounded}, {elapsed:.2f} s -> {out}")
     return 0
 
 

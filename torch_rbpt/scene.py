@@ -131,6 +131,12 @@ class Sensor:
         width = 2 * half / np.sqrt(1 + 1 / aspect ** 2)
         return float(np.degrees(2 * np.arctan(width / 2)))
 
+    def sample_count(self, spp: int | None = None) -> int:
+        """The samples per pixel a render at `spp` (default: this sensor's `spp`) takes, as
+        the sampler rounds it: stratified to a square, multijitter to rows x columns,
+        orthogonal to a prime's square, ldsampler to a power of 4; independent keeps it."""
+        return _C.sample_count(self.native(), int(self.spp if spp is None else spp))
+
     def native(self) -> dict:
         f = self.film
         catmullrom = f.filter == "catmullrom"
