@@ -349,6 +349,7 @@ public:
     [[gnu::always_inline]] static Var binary(const RGB<T> &value, const Var &a, const Var &b,
                                              PA partial_a, PB partial_b) {
         Var r(value);
+        // (a.node_ & b.node_) >= 0: not both -1, i.e. at least one operand is recorded.
         if (__builtin_expect((a.node_ & b.node_) >= 0, 0) && detail::recording) {
             r.node_ = Tape<T>::local().push_op(a.node_, a.node_ >= 0 ? partial_a() : RGB<T>(),
                                                b.node_, b.node_ >= 0 ? partial_b() : RGB<T>());
