@@ -1,4 +1,5 @@
 """Shared fixtures: paths to the public scenes and small scenes built in code."""
+import contextlib
 import importlib.util
 import sys
 from pathlib import Path
@@ -106,3 +107,39 @@ def directional_derivatives(scene, key: str, w, direction, spp: int, n_seeds: in
                 out["fd"].append(float((up - down) / (2 * h)))
         scene.params[key] = p.clone()
     return {k: torch.tensor(v, dtype=torch.float64) for k, v in out.items()}
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run the block with torch's intra-op pool at n threads, restoring the count after."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def l2_gradient_samples(scene, key: str, spp: int, n: int, mean_spp: int):
+    """The bias experiment of an L2 loss |I - T|^2 against T = half the mean image: returns
+    the exact gradient d/d(first channel of `key`) of |E[I] - T|^2 (from renders at
+    `mean_spp`, seeds 99 and 98) and n gradient samples each (render seed s < n, `spp`) with
+    the backward pass replaying the forward samples and with independent backward samples,
+    as tensors in the parameter's dtype. The parameter is restored afterwards."""
+    p = scene.params[key]
+    dtype = p.dtype
+    with torch.no_grad():
+        mean_image = tr.render(scene, spp=mean_spp, seed=99)
+        dmean = tr.render_forward(scene, {key: torch.tensor([1.0, 0, 0], dtype=dtype)}, spp=mean_spp, seed=98)
+    target = 0.5 * mean_image
+    expected = float((2 * (mean_image - target) * dmean).sum())  # d/dp_r of |E[I] - T|^2
+    replay, independent = [], []
+    for s in range(n):
+        x = p.detach().clone().requires_grad_()
+        scene.params[key] = x
+        for out, seed_grad in ((replay, s), (independent, None)):
+            image = tr.render(scene, spp=spp, seed=s, seed_grad=seed_grad)
+            (g,) = torch.autograd.grad(((image - target) ** 2).sum(), [x])
+            out.append(float(g[0]))
+    scene.params[key] = p.detach()
+    return expected, torch.tensor(replay, dtype=dtype), torch.tensor(independent, dtype=dtype)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import ROOT, directional_derivatives
+from conftest import ROOT, directional_derivatives, l2_gradient_samples
 
 D = torch.float64
 
@@ -239,24 +239,9 @@ def test12_replay_is_biased_for_nonlinear_losses_independent_seeds_are_not():
     image with its own derivative, E[2 (I - T) dI] = 2 (E[I] - T) E[dI] + 2 Cov(I, dI);
     independent seeds remove the covariance."""
     scene = tr.load_file(ROOT / "torch_rbpt/scenes/cornell_box.xml", res=8, dtype=D)
-    key = "light.emitter.radiance.value"
-    p = scene.params[key]
-    with torch.no_grad():
-        mean_image = tr.render(scene, spp=8192, seed=99)
-        dmean = tr.render_forward(scene, {key: torch.tensor([1.0, 0, 0], dtype=D)}, spp=8192, seed=98)
-    target = 0.5 * mean_image
-    expected = float((2 * (mean_image - target) * dmean).sum())  # d/dLe_r of |E[I] - T|^2
-    replay, independent = [], []
     n = 400
-    for s in range(n):
-        x = p.detach().clone().requires_grad_()
-        scene.params[key] = x
-        for out, seed_grad in ((replay, s), (independent, None)):
-            image = tr.render(scene, spp=1, seed=s, seed_grad=seed_grad)
-            (g,) = torch.autograd.grad(((image - target) ** 2).sum(), [x])
-            out.append(float(g[0]))
-    scene.params[key] = p.detach()
-    replay, independent = torch.tensor(replay, dtype=D), torch.tensor(independent, dtype=D)
+    expected, replay, independent = l2_gradient_samples(scene, "light.emitter.radiance.value",
+                                                        spp=1, n=n, mean_spp=8192)
     se_r, se_i = float(replay.std()) / math.sqrt(n), float(independent.std()) / math.sqrt(n)
     assert abs(float(independent.mean()) - expected) < 4 * se_i, (independent.mean(), expected, se_i)
     assert float(replay.mean()) - expected > 4 * se_r, (replay.mean(), expected, se_r)

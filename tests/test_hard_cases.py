@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import furnace_scene
+from conftest import furnace_scene, torch_threads
 
 T = tr.Transform
 
@@ -75,12 +75,8 @@ def test02_gradient_sums_exact_at_two_million_spp():
     # d(sum of a 4x4 image)/d(sky radiance) = 16 per channel. On one thread, a float32 gradient
     # buffer stalls at 8 once it holds 2^24 increments of 2^-21.
     scene = _sky([1.0, 0.1, 0.7], res=4)
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         g = _grad(scene, "sky.radiance.value", spp=2 ** 21)
-    finally:
-        torch.set_num_threads(old)
     assert torch.allclose(g, torch.full((3,), 16.0), rtol=1e-6, atol=0)
 
 

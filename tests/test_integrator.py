@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
-from conftest import ROOT, furnace_scene
+from conftest import ROOT, furnace_scene, torch_threads
 
 
 def _center(image, k=2):
@@ -73,14 +73,10 @@ def test04b_hide_emitters_drops_only_directly_seen_emission():
 
 def test05_same_image_for_one_and_two_threads(shared):
     scene = tr.load_file(shared / "cbox/cbox.xml", res=24)
-    old = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
+    with torch_threads(1):
         one = tr.render(scene, spp=8, seed=5)
-        torch.set_num_threads(2)
+    with torch_threads(2):
         two = tr.render(scene, spp=8, seed=5)
-    finally:
-        torch.set_num_threads(old)
     assert torch.equal(one, two)
 
 

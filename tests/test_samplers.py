@@ -12,7 +12,7 @@ import torch
 
 import torch_rbpt as tr
 from torch_rbpt.scene import Sensor
-from conftest import REFERENCES, directional_derivatives
+from conftest import REFERENCES, directional_derivatives, l2_gradient_samples, torch_threads
 
 FOLDER = REFERENCES / "sensors_samplers"
 SAMPLERS = ["stratified", "multijitter", "orthogonal", "ldsampler"]
@@ -161,14 +161,10 @@ def test07_every_sample_is_uniform_over_pixels(sampler):
 def test08_images_are_identical_for_any_thread_count(sampler):
     scene = tr.load_file(FOLDER / "samplers.xml", sampler=sampler)
     scene.sensor.film.width, scene.sensor.film.height = 40, 36
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
+    with torch_threads(1):
         one = tr.render(scene, spp=16, seed=4)
-        torch.set_num_threads(2)
+    with torch_threads(2):
         two = tr.render(scene, spp=16, seed=4)
-    finally:
-        torch.set_num_threads(threads)
     assert torch.equal(one, two)
     assert not torch.equal(one, tr.render(scene, spp=16, seed=5))
 
@@ -255,24 +251,9 @@ def test12_l2_loss_gradient_is_unbiased_with_a_stratified_sampler():
     2 Cov(I, dI) > 0."""
     scene = tr.load_file(FOLDER / "samplers.xml", sampler="stratified", dtype=D)
     scene.sensor.film.width, scene.sensor.film.height = 8, 6
-    key = "light.emitter.radiance.value"
-    p = scene.params[key]
-    with torch.no_grad():
-        mean_image = tr.render(scene, spp=4096, seed=99)
-        dmean = tr.render_forward(scene, {key: torch.tensor([1.0, 0, 0], dtype=D)}, spp=4096, seed=98)
-    target = 0.5 * mean_image
-    expected = float((2 * (mean_image - target) * dmean).sum())
-    replay, independent = [], []
     n = 300
-    for s in range(n):
-        x = p.detach().clone().requires_grad_()
-        scene.params[key] = x
-        for out, seed_grad in ((replay, s), (independent, None)):
-            image = tr.render(scene, spp=4, seed=s, seed_grad=seed_grad)
-            (g,) = torch.autograd.grad(((image - target) ** 2).sum(), [x])
-            out.append(float(g[0]))
-    scene.params[key] = p.detach()
-    replay, independent = torch.tensor(replay, dtype=D), torch.tensor(independent, dtype=D)
+    expected, replay, independent = l2_gradient_samples(scene, "light.emitter.radiance.value",
+                                                        spp=4, n=n, mean_spp=4096)
     se_r, se_i = float(replay.std()) / math.sqrt(n), float(independent.std()) / math.sqrt(n)
     print(f"expected {expected:.4f}, independent {independent.mean():.4f} +- {se_i:.4f}, "
           f"replay {replay.mean():.4f} +- {se_r:.4f}")
