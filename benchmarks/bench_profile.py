@@ -94,7 +94,7 @@ def perf_shares(data: Path, kind: str) -> tuple[float, float]:
             if any(dso.startswith(d) for d in MITSUBA_RAY_DSOS):
                 rays += period
                 total += period
-            elif any(dso.startswith(d) for d in MITSUBA_OTHER_DSOS) or dso.startswith("[JIT]"):
+            elif any(dso.startswith(d) for d in MITSUBA_OTHER_DSOS):
                 total += period
     return rays, total
 

@@ -230,13 +230,18 @@ torch::Tensor render_typed(const Scene &scene, const Camera &cam, const Integrat
     return out;
 }
 
-/// A request for the whole image at `spp` samples per pixel, rounded as the sensor's sampler
-/// rounds its sample count (Mitsuba's set_sample_count): `cam.sampler` learns the count.
-RenderRequest whole_image(Camera &cam, int spp, uint64_t seed) {
+/// Give `sampler` `spp` samples per pixel, rounded as Mitsuba's set_sample_count rounds them.
+void set_spp(SamplerDesc &sampler, int spp) {
     if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
-    if (cam.sampler.type != SamplerType::Independent && spp > (1 << 24))
+    if (sampler.type != SamplerType::Independent && spp > (1 << 24))
         fail("the stratified samplers take at most 2^24 samples per pixel, got " + std::to_string(spp));
-    cam.sampler.set_sample_count(uint32_t(spp));
+    sampler.set_sample_count(uint32_t(spp));
+}
+
+/// A request for the whole image at `spp` samples per pixel, rounded as the sensor's sampler
+/// rounds its sample count: `cam.sampler` learns the count.
+RenderRequest whole_image(Camera &cam, int spp, uint64_t seed) {
+    set_spp(cam.sampler, spp);
     RenderRequest req;
     req.spp = int(cam.sampler.sample_count);
     req.seed = seed;
@@ -851,9 +856,8 @@ PYBIND11_MODULE(_C, m) {
     m.def("intersect_rays", &intersect_rays);
     m.def("interact_rays", &interact_rays);
     m.def("sample_count", [](const py::dict &camera, int spp) {
-        if (spp <= 0) fail("spp must be positive, got " + std::to_string(spp));
         SamplerDesc s = make_sampler(camera);
-        s.set_sample_count(uint32_t(spp));
+        set_spp(s, spp);
         return int(s.sample_count);
     }, py::arg("camera"), py::arg("spp"),
           "The samples per pixel a render at `spp` takes: the sensor's sampler rounds it as "
