@@ -426,9 +426,7 @@ def parse_args(argv=None):
     ap.add_argument("--repeats", type=int, default=3, help="timed renders per spp (best time, mean error)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 64x64, spp 4 16, ref 256 spp, 1 repeat")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only, even if Mitsuba is installed")
-    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
-                    help="avx2: Mitsuba's kernels compiled for Haswell with 8 lanes, as on an "
-                         "AVX2-only machine (build ours with MARCH=x86-64-v3 for the same)")
+    mitsuba_ref.add_isa_argument(ap)
     ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--cache", type=Path, default=HERE / "cache")
     args = ap.parse_args(argv)

@@ -327,8 +327,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--kinds", nargs="+", default=None, help="subset of: reflectance texture roughness roughplastic")
     ap.add_argument("--quick", action="store_true", help="res 16, spp 2 8, 2 seeds, ref 64 spp")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only")
-    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
-                    help="avx2: Mitsuba's kernels for Haswell with 8 lanes (see bench_error_time.py)")
+    mitsuba_ref.add_isa_argument(ap)
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--cache", default=str(HERE / "cache"))
     args = ap.parse_args(argv)

@@ -36,6 +36,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from machine import cpu_model  # noqa: E402
+import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 KEY = "red.reflectance.value"
@@ -78,8 +79,6 @@ def run_ours(cfg: dict, marks: dict) -> tuple:
 
 
 def run_mitsuba(cfg: dict, marks: dict) -> tuple:
-    sys.path.insert(0, str(HERE))
-    import mitsuba_ref
     mi = mitsuba_ref._mitsuba()  # sets DRJIT_LIBLLVM_PATH, variant llvm_ad_rgb
     mitsuba_ref.set_isa(cfg.get("mitsuba_isa", "native"))
     import drjit as dr
@@ -148,8 +147,7 @@ def main(argv=None) -> list:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help=f"{QUICK}")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only")
-    ap.add_argument("--mitsuba-isa", choices=["native", "avx2"], default="native",
-                    help="avx2: Mitsuba's kernels for Haswell with 8 lanes (see bench_error_time.py)")
+    mitsuba_ref.add_isa_argument(ap)
     ap.add_argument("--repeats", type=int, default=1, help="fresh processes per renderer (best cold kept)")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--worker", choices=["ours", "mitsuba"], help=argparse.SUPPRESS)
@@ -167,8 +165,6 @@ def main(argv=None) -> list:
     if args.no_mitsuba:
         print(f"Mitsuba 3 skipped (--no-mitsuba). To compare, {INSTALL_HINT}.")
     else:
-        sys.path.insert(0, str(HERE))
-        import mitsuba_ref
         if mitsuba_ref.available():
             renderers.append("mitsuba")
         else:

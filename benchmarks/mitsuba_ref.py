@@ -81,6 +81,13 @@ _ISA_TARGETS = {"avx2": (b"haswell", b"+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+lzcnt,+
                                      b"-avx512f,-avx512vl,-avx512dq,-avx512bw,-avx512cd", 8)}
 
 
+def add_isa_argument(parser) -> None:
+    """The benchmarks' --mitsuba-isa option (its value goes to set_isa)."""
+    parser.add_argument("--mitsuba-isa", choices=["native", *_ISA_TARGETS], default="native",
+                        help="avx2: Mitsuba's kernels compiled for Haswell with 8 lanes, as on an "
+                             "AVX2-only machine (build ours with MARCH=x86-64-v3 for the same)")
+
+
 def _drjit_core():
     import ctypes
     import drjit as dr
