@@ -58,11 +58,18 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
     static const auto rule32 = rule(32), rule128 = rule(128);
     const std::vector<double> &nodes = res == 32 ? rule32.first : rule128.first;
     const std::vector<double> &weights = res == 32 ? rule32.second : rule128.second;
+    // The sampler's parts along each axis of the grid, once per row and per column.
+    VisibleNormalSampler sampler(type, alpha, wi);
+    Vec2 px[128], py[128];  // (res is 32 or 128)
+    for (int i = 0; i < res; ++i) {
+        float u = float(0.5 * nodes[i] + 0.5);
+        px[i] = sampler.part_x(u);
+        py[i] = sampler.part_y(u);
+    }
     double sum = 0.0;
     for (int i = 0; i < res; ++i) {
         for (int j = 0; j < res; ++j) {
-            Vec2 u{float(0.5 * nodes[i] + 0.5), float(0.5 * nodes[j] + 0.5)};
-            Vec3 m = sample_visible_normal(type, alpha, wi, u);
+            Vec3 m = sampler.normal(px[i], py[j]);
             float cos_t, eta_it, eta_ti;
             float F = fresnel_dielectric(dot(wi, m), eta, &cos_t, &eta_it, &eta_ti);
             float value;

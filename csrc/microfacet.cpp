@@ -36,72 +36,86 @@ float erfinv(float x) {
     return p * x;
 }
 
-namespace {
+// Beckmann: the slopes of the visible distribution for alpha = 1 (Jakob 2014), in float:
+// safeguarded Newton on the normalised CDF until it is within 1e-6 of u1 (two steps for most
+// samples; Mitsuba stops after three steps whatever the residual), rotated to wi's azimuth.
+// GGX: Heitz 2018, the projected hemisphere of the stretched configuration.
 
-/// Sample the slopes of the visible Beckmann distribution for alpha = 1 (Jakob 2014), in
-/// float: safeguarded Newton on the normalised CDF until it is within 1e-6 of u1 (two steps
-/// for most samples; Mitsuba stops after three steps whatever the residual).
-void sample_visible_11_beckmann(float cos_i, float u1, float u2, float *sx, float *sy) {
-    constexpr float InvSqrtPi = 0.56418958354775628f;
-    if (cos_i > 0.99999f) {
-        float r = std::sqrt(-std::log(std::max(1.f - u1, 1e-30f))), phi = 2.f * Pi * u2;
-        *sx = r * std::cos(phi);
-        *sy = r * std::sin(phi);
+VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, const Vec3 &wi)
+    : type_(type), alpha_(alpha), w_(normalize(Vec3{alpha * wi.x, alpha * wi.y, wi.z})) {
+    if (type == MicrofacetType::GGX) {
+        float len2 = w_.x * w_.x + w_.y * w_.y;
+        t1_ = len2 > 0.f ? Vec3{-w_.y, w_.x, 0.f} / std::sqrt(len2) : Vec3{1.f, 0.f, 0.f};
+        t2_ = cross(w_, t1_);
+        s_ = 0.5f * (1.f + w_.z);
         return;
     }
+    float sin_t = std::sqrt(w_.x * w_.x + w_.y * w_.y);
+    cos_phi_ = sin_t > 0.f ? w_.x / sin_t : 1.f;
+    sin_phi_ = sin_t > 0.f ? w_.y / sin_t : 0.f;
+    float cos_i = w_.z;
+    polar_ = cos_i > 0.99999f;
+    if (polar_) return;
     float sin_i = std::sqrt(std::max(0.f, 1.f - cos_i * cos_i));
-    float tan_i = sin_i / cos_i, cot_i = 1.f / tan_i;
-    // Search interval, parameterised in the erf() domain.
-    float a = -1.f, c = std::erf(cot_i);
-    u1 = std::max(u1, 1e-6f);
-    // A good initial guess (Jakob's fit), then safeguarded Newton on the normalised CDF.
+    tan_i_ = sin_i / cos_i;
+    float cot_i = 1.f / tan_i_;
+    erf_cot_ = std::erf(cot_i);
+    // Jakob's fit of the initial guess's exponent.
     float theta_i = std::acos(cos_i);
-    float fit = 1.f + theta_i * (-0.876f + theta_i * (0.4265f - 0.0594f * theta_i));
-    float b = c - (1.f + c) * std::pow(1.f - u1, fit);
+    fit_ = 1.f + theta_i * (-0.876f + theta_i * (0.4265f - 0.0594f * theta_i));
     // (e^-cot^2 is below 1e-35 beyond cot = 9: skip libm's slow underflow path.)
-    float tail = cot_i < 9.f ? InvSqrtPi * tan_i * std::exp(-cot_i * cot_i) : 0.f;
-    float normalization = 1.f / (1.f + c + tail);
+    constexpr float InvSqrtPi = 0.56418958354775628f;
+    float tail = cot_i < 9.f ? InvSqrtPi * tan_i_ * std::exp(-cot_i * cot_i) : 0.f;
+    normalization_ = 1.f / (1.f + erf_cot_ + tail);
+}
+
+Vec2 VisibleNormalSampler::part_x(float u1) const {
+    if (type_ == MicrofacetType::GGX) return {std::sqrt(u1), 0.f};
+    if (polar_) return {std::sqrt(-std::log(std::max(1.f - u1, 1e-30f))), 0.f};
+    constexpr float InvSqrtPi = 0.56418958354775628f;
+    // Search interval, parameterised in the erf() domain, and a good initial guess.
+    float a = -1.f, c = erf_cot_;
+    u1 = std::max(u1, 1e-6f);
+    float b = c - (1.f + c) * std::pow(1.f - u1, fit_);
     bool converged = false;
     float inv_erf = 0.f;
     for (int it = 0; it < 100; ++it) {
         if (!(b >= a && b <= c)) b = 0.5f * (a + c);
         inv_erf = erfinv(b);
-        float value = normalization * (1.f + b + InvSqrtPi * tan_i * std::exp(-inv_erf * inv_erf)) - u1;
-        float derivative = normalization * (1.f - inv_erf * tan_i);
+        float value = normalization_ * (1.f + b + InvSqrtPi * tan_i_ * std::exp(-inv_erf * inv_erf)) - u1;
+        float derivative = normalization_ * (1.f - inv_erf * tan_i_);
         converged = std::abs(value) < 1e-6f;
         if (converged) break;
         if (value > 0.f) c = b; else a = b;
         b -= value / derivative;
     }
-    *sx = converged ? inv_erf : erfinv(b);  // the converged step already inverted b
-    *sy = erfinv(2.f * u2 - 1.f);
+    return {converged ? inv_erf : erfinv(b), 0.f};  // the converged step already inverted b
 }
 
-}  // namespace
+Vec2 VisibleNormalSampler::part_y(float u2) const {
+    if (type_ == MicrofacetType::GGX || polar_) {
+        float phi = 2.f * Pi * u2;
+        return {std::cos(phi), std::sin(phi)};
+    }
+    return {erfinv(2.f * u2 - 1.f), 0.f};
+}
+
+Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
+    if (type_ == MicrofacetType::GGX) {
+        float p1 = px.x * py.x, p2 = px.x * py.y;
+        p2 = (1.f - s_) * safe_sqrt(1.f - p1 * p1) + s_ * p2;
+        Vec3 nh = t1_ * p1 + t2_ * p2 + w_ * safe_sqrt(1.f - p1 * p1 - p2 * p2);
+        return normalize(Vec3{alpha_ * nh.x, alpha_ * nh.y, std::max(0.f, nh.z)});
+    }
+    // Slopes for alpha = 1, rotated to wi's azimuth and unstretched.
+    float sx = polar_ ? px.x * py.x : px.x, sy = polar_ ? px.x * py.y : py.x;
+    float mx = (cos_phi_ * sx - sin_phi_ * sy) * alpha_;
+    float my = (sin_phi_ * sx + cos_phi_ * sy) * alpha_;
+    return normalize(Vec3{-mx, -my, 1.f});
+}
 
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u) {
-    if (type == MicrofacetType::GGX) {
-        // Heitz 2018: sample the projected hemisphere of the stretched configuration.
-        Vec3 vh = normalize(Vec3{alpha * wi.x, alpha * wi.y, wi.z});
-        float len2 = vh.x * vh.x + vh.y * vh.y;
-        Vec3 t1 = len2 > 0.f ? Vec3{-vh.y, vh.x, 0.f} / std::sqrt(len2) : Vec3{1.f, 0.f, 0.f};
-        Vec3 t2 = cross(vh, t1);
-        float r = std::sqrt(u.x), phi = 2.f * Pi * u.y;
-        float p1 = r * std::cos(phi), p2 = r * std::sin(phi);
-        float s = 0.5f * (1.f + vh.z);
-        p2 = (1.f - s) * safe_sqrt(1.f - p1 * p1) + s * p2;
-        Vec3 nh = t1 * p1 + t2 * p2 + vh * safe_sqrt(1.f - p1 * p1 - p2 * p2);
-        return normalize(Vec3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
-    }
-    // Beckmann: stretch, sample the alpha = 1 slopes, rotate, unstretch (Mitsuba's recipe).
-    Vec3 w = normalize(Vec3{alpha * wi.x, alpha * wi.y, wi.z});
-    float sin_t = std::sqrt(w.x * w.x + w.y * w.y);
-    float cos_phi = sin_t > 0.f ? w.x / sin_t : 1.f, sin_phi = sin_t > 0.f ? w.y / sin_t : 0.f;
-    float sx, sy;
-    sample_visible_11_beckmann(w.z, u.x, u.y, &sx, &sy);
-    float mx = (cos_phi * sx - sin_phi * sy) * alpha;
-    float my = (sin_phi * sx + cos_phi * sy) * alpha;
-    return normalize(Vec3{-mx, -my, 1.f});
+    return VisibleNormalSampler(type, alpha, wi).sample(u);
 }
 
 }  // namespace rbpt

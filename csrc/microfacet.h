@@ -64,6 +64,33 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
            wi.z;
 }
 
+/// Sampling of the microfacet normals visible from one direction wi (wi.z > 0), distributed
+/// as visible_normal_pdf. What depends only on (distribution, alpha, wi) is computed once, at
+/// construction. A sample is separable in u: part_x(u.x) depends on u.x alone (Beckmann's
+/// Newton solve is there) and part_y(u.y) on u.y alone, so a grid of samples (roughplastic's
+/// quadratures) computes each part once per row or column and combines them with normal().
+class VisibleNormalSampler {
+public:
+    VisibleNormalSampler(MicrofacetType type, float alpha, const Vec3 &wi);
+    Vec3 sample(Vec2 u) const { return normal(part_x(u.x), part_y(u.y)); }
+    Vec2 part_x(float u1) const;
+    Vec2 part_y(float u2) const;
+    Vec3 normal(Vec2 px, Vec2 py) const;
+
+private:
+    MicrofacetType type_;
+    float alpha_;
+    Vec3 w_;  ///< wi stretched to the alpha = 1 configuration
+    // GGX: a frame around w_ and the weight of the hemisphere's half that wi sees.
+    Vec3 t1_, t2_;
+    float s_ = 0.f;
+    // Beckmann: rotation of the slopes to wi's azimuth; at (near) normal incidence the slopes
+    // are polar (radius from u.x, angle from u.y), else the CDF inversion's constants.
+    float cos_phi_ = 1.f, sin_phi_ = 0.f;
+    bool polar_ = false;
+    float tan_i_ = 0.f, erf_cot_ = 0.f, fit_ = 0.f, normalization_ = 0.f;
+};
+
 /// Sample a microfacet normal visible from wi (wi.z > 0), distributed as visible_normal_pdf.
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u);
 

@@ -114,7 +114,7 @@ def _chi2_test(scene, wi, n=200_000, res_theta=12, res_phi=24, sub=8, density=No
 
 
 @pytest.mark.parametrize("name", sorted(SMOOTH))
-@pytest.mark.parametrize("theta", [10.0, 60.0])
+@pytest.mark.parametrize("theta", [0.0, 10.0, 60.0])  # 0: Beckmann's polar slopes
 def test03_chi2_sample_matches_pdf(name, theta):
     scene = bsdf_scene(SMOOTH[name])
     p, _ = _chi2_test(scene, _direction(theta, 30.0))
