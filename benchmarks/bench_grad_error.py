@@ -66,8 +66,6 @@ CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 SCENES = HERE / "scenes"
 TEX_RES = 32
 
-INSTALL_HINT = ("install Mitsuba 3 with 'pip install mitsuba' and libLLVM for its LLVM backend "
-                "with 'apt-get install libllvm19'")
 
 
 def _texture(kind: str) -> np.ndarray:
@@ -346,7 +344,7 @@ def main(argv=None) -> dict:
     mi_version = mitsuba_ref.version() if use_mi else ""
     if not use_mi:
         print(f"Mitsuba 3 skipped ({why}): only torch_rbpt runs, errors are against its own "
-              f"reference. To compare, {INSTALL_HINT}.")
+              f"reference. To compare, {mitsuba_ref.INSTALL_HINT}.")
     header = dict(cpu=f"{cpu_model()}, torch_rbpt built for {tr._C.build_isa}", cores=os.cpu_count(),
                   torch_threads=torch.get_num_threads(),
                   date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
@@ -429,7 +427,7 @@ def main(argv=None) -> dict:
             w.writeheader()
             w.writerows([{**a, **header} for a in agreement])
     elif not use_mi:
-        print(f"\nMitsuba 3 comparison skipped ({why}); {INSTALL_HINT}.")
+        print(f"\nMitsuba 3 comparison skipped ({why}); {mitsuba_ref.INSTALL_HINT}.")
 
     with open(out / "grad_error.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(csv_rows[0]))

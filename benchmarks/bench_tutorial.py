@@ -44,8 +44,6 @@ TRUTH = (0.570068, 0.0430135, 0.0443706)
 START = (0.01, 0.2, 0.9)
 TUTORIAL = dict(res=128, ref_spp=512, spp=4, iterations=50, lr=0.05)
 QUICK = dict(res=32, ref_spp=16, spp=4, iterations=12, lr=0.05)
-INSTALL_HINT = ("install Mitsuba 3 with 'pip install mitsuba' and libLLVM for its LLVM backend "
-                "with 'apt-get install libllvm19'")
 
 
 def run_ours(cfg: dict, marks: dict) -> tuple:
@@ -163,12 +161,12 @@ def main(argv=None) -> list:
     out.mkdir(parents=True, exist_ok=True)
     renderers = ["ours"]
     if args.no_mitsuba:
-        print(f"Mitsuba 3 skipped (--no-mitsuba). To compare, {INSTALL_HINT}.")
+        print(f"Mitsuba 3 skipped (--no-mitsuba). To compare, {mitsuba_ref.INSTALL_HINT}.")
     else:
         if mitsuba_ref.available():
             renderers.append("mitsuba")
         else:
-            print(f"Mitsuba 3 skipped (not available). To compare, {INSTALL_HINT}.")
+            print(f"Mitsuba 3 skipped (not available). To compare, {mitsuba_ref.INSTALL_HINT}.")
     env = dict(os.environ)
     root = str(HERE.parent)
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -203,7 +201,7 @@ def main(argv=None) -> list:
         for k, v in ratios.items():
             o[f"ratio_{k}"] = v
     else:
-        print(f"Mitsuba 3 comparison skipped; {INSTALL_HINT}.")
+        print(f"Mitsuba 3 comparison skipped; {mitsuba_ref.INSTALL_HINT}.")
     print(f"true {KEY} = {TRUTH}")
     fields = []
     for r in rows:

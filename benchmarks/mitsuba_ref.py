@@ -25,6 +25,10 @@ PREFERRED_VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
 # seed, and averaged (keeps the wavefront's memory bounded).
 MAX_SAMPLES_PER_PASS = 1 << 22
 
+# How to install Mitsuba 3 for the comparisons (the benchmarks print it when they skip it).
+INSTALL_HINT = ("install Mitsuba 3 with 'pip install mitsuba' and libLLVM for its LLVM backend "
+                "with 'apt-get install libllvm19'")
+
 _MISSING = ("Mitsuba 3 is not available (pip package 'mitsuba' not importable or no usable "
             "variant among %s); install it with 'pip install mitsuba'." % (PREFERRED_VARIANTS,))
 

@@ -1,5 +1,6 @@
-"""The gradient benchmarks (benchmarks/bench_grad_error.py, benchmarks/bench_tutorial.py) run
-in their --quick --no-mitsuba settings and write CSV rows with finite values."""
+"""The gradient benchmarks (benchmarks/bench_grad_error.py, benchmarks/bench_tutorial.py,
+benchmarks/bench_gradients.py) run in small --no-mitsuba settings and write CSV rows with
+finite values."""
 import csv
 import math
 from pathlib import Path
@@ -42,3 +43,17 @@ def test02_tutorial_quick(tmp_path):
     assert float(r["cold_no_ref_s"]) <= float(r["cold_s"])
     # 12 iterations from (0.01, 0.2, 0.9), 0.55 RMS away from the truth: it must move towards it.
     assert float(r["error"]) < 0.55
+
+
+def test03_gradients_small(tmp_path):
+    bench = load_benchmark("bench_gradients")
+    bench.main(["--res", "16", "--spp", "1", "--repeats", "1", "--no-mitsuba", "--out", str(tmp_path)])
+    rows = read_csv(tmp_path / "gradients.csv")
+    assert [r["differentiated"] for r in rows][0] == "red.reflectance.value" and len(rows) == 2
+    for r in rows:
+        assert float(r["forward_s"]) > 0 and float(r["backward_s"]) > 0
+    rough = read_csv(tmp_path / "roughplastic_alpha.csv")
+    assert {(r["distribution"], r["step"], r["renderer"]) for r in rough} == {
+        (d, s, "torch_rbpt") for d in ("beckmann", "ggx") for s in ("render", "render + backward")}
+    for r in rough:
+        assert float(r["same_alpha_ms"]) > 0 and float(r["new_alpha_ms"]) > 0, r
