@@ -366,7 +366,7 @@ struct RoughPlasticBSDF {
 
 /// Call f with a value of the BSDF struct of `type` (the only switch over BSDF types).
 template <typename F>
-decltype(auto) visit_bsdf(BSDFType type, F &&f) {
+RBPT_INLINE decltype(auto) visit_bsdf(BSDFType type, F &&f) {
     switch (type) {
         case BSDFType::Diffuse: return f(DiffuseBSDF{});
         case BSDFType::Conductor: return f(ConductorBSDF{});
@@ -411,8 +411,8 @@ float bsdf_pdf(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteractio
 }
 
 template <typename S, typename Ctx>
-BSDFEval<S> bsdf_eval_pdf(const BSDF &b, const Ctx &ctx, int index, const SurfaceInteraction &si,
-                          Vec3 wo) {
+RBPT_INLINE BSDFEval<S> bsdf_eval_pdf(const BSDF &b, const Ctx &ctx, int index,
+                                      const SurfaceInteraction &si, Vec3 wo) {
     Vec3 wi = si.wi;
     flip_side(b, &wi, &wo);
     auto q = make_query(b, ctx, index, si);
@@ -420,8 +420,9 @@ BSDFEval<S> bsdf_eval_pdf(const BSDF &b, const Ctx &ctx, int index, const Surfac
 }
 
 template <typename S, typename Ctx>
-std::optional<BSDFSample<S>> bsdf_sample(const BSDF &b, const Ctx &ctx, int index,
-                                         const SurfaceInteraction &si, float u1, Vec2 u2) {
+RBPT_INLINE std::optional<BSDFSample<S>> bsdf_sample(const BSDF &b, const Ctx &ctx, int index,
+                                                     const SurfaceInteraction &si, float u1,
+                                                     Vec2 u2) {
     Vec3 wi = si.wi;
     bool flipped = flip_side(b, &wi, nullptr);
     auto q = make_query(b, ctx, index, si);

@@ -41,7 +41,8 @@ S emitter_eval(const Ctx &ctx, const Emitter &e, const SurfaceInteraction &si) {
 
 /// Sample a direction towards one emitter chosen uniformly; u.x is reused after selection.
 template <typename S, typename Ctx>
-std::optional<EmitterSample<S>> emitter_sample(const Ctx &ctx, const Vec3 &ref, Vec2 u) {
+RBPT_INLINE std::optional<EmitterSample<S>> emitter_sample(const Ctx &ctx, const Vec3 &ref,
+                                                           Vec2 u) {
     const auto &emitters = ctx.scene.emitters;
     int n = int(emitters.size());
     if (n == 0) return std::nullopt;

@@ -54,8 +54,8 @@ inline Color3f roulette_factor(const S &weight) {
 /// The BSDF towards a sampled emitter direction, with its density unless the emitter is a
 /// delta light (whose samples are never MIS-weighted).
 template <typename S>
-BSDFEval<S> bsdf_eval_for(const BSDF &bsdf, const RenderContext<S> &ctx, int index,
-                          const SurfaceInteraction &si, const EmitterSample<S> &es) {
+RBPT_INLINE BSDFEval<S> bsdf_eval_for(const BSDF &bsdf, const RenderContext<S> &ctx, int index,
+                                      const SurfaceInteraction &si, const EmitterSample<S> &es) {
     Vec3 wo = si.to_local(es.d);
     if (es.delta) return {bsdf_eval<S>(bsdf, ctx, index, si, wo), 0.f};
     return bsdf_eval_pdf<S>(bsdf, ctx, index, si, wo);
@@ -64,7 +64,7 @@ BSDFEval<S> bsdf_eval_for(const BSDF &bsdf, const RenderContext<S> &ctx, int ind
 /// The shadow ray from `si` towards a sampled emitter point (or direction, for the
 /// environment).
 template <typename S>
-Ray shadow_ray(const SurfaceInteraction &si, const EmitterSample<S> &es) {
+RBPT_INLINE Ray shadow_ray(const SurfaceInteraction &si, const EmitterSample<S> &es) {
     return std::isinf(es.dist) ? si.spawn_ray(es.d) : si.spawn_ray_to(es.p);
 }
 

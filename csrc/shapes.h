@@ -91,7 +91,7 @@ struct SurfaceInteraction {
     /// rounding-error box, then rounded away from the surface (pbrt-v4's OffsetRayOrigin).
     /// Unlike Mitsuba's offset, which grows with the distance from the world origin, this
     /// follows the actual error of p, so scenes far from the origin keep contact shadows.
-    Vec3 offset_p(const Vec3 &d) const {
+    RBPT_INLINE Vec3 offset_p(const Vec3 &d) const {
         Vec3 offset = n * dot(vabs(n), p_error);
         if (dot(n, d) < 0.f) offset = -offset;
         Vec3 o = p + offset;
@@ -101,13 +101,13 @@ struct SurfaceInteraction {
         }
         return o;
     }
-    Ray spawn_ray(const Vec3 &d) const {
+    RBPT_INLINE Ray spawn_ray(const Vec3 &d) const {
         Ray r;
         r.o = offset_p(d);
         r.d = d;
         return r;
     }
-    Ray spawn_ray_to(const Vec3 &target) const {
+    RBPT_INLINE Ray spawn_ray_to(const Vec3 &target) const {
         Ray r;
         r.o = offset_p(target - p);
         Vec3 d = target - r.o;

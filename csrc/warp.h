@@ -7,7 +7,7 @@
 namespace rbpt::warp {
 
 /// Shirley-Chiu concentric map from [0,1)^2 to the unit disk.
-inline Vec2 square_to_uniform_disk_concentric(Vec2 u) {
+RBPT_INLINE Vec2 square_to_uniform_disk_concentric(Vec2 u) {
     float x = 2.f * u.x - 1.f, y = 2.f * u.y - 1.f;
     if (x == 0.f && y == 0.f) return {0.f, 0.f};
     float r, phi;
@@ -22,7 +22,7 @@ inline Vec2 square_to_uniform_disk_concentric(Vec2 u) {
 }
 
 /// Cosine-weighted hemisphere around +z; pdf = cos(theta) / pi.
-inline Vec3 square_to_cosine_hemisphere(Vec2 u) {
+RBPT_INLINE Vec3 square_to_cosine_hemisphere(Vec2 u) {
     Vec2 p = square_to_uniform_disk_concentric(u);
     float z = safe_sqrt(1.f - p.x * p.x - p.y * p.y);
     return {p.x, p.y, z};
