@@ -31,15 +31,8 @@ import torch_rbpt as tr
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
-from machine import machine  # noqa: E402
+from machine import machine, status_mb  # noqa: E402
 SCENE = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
-
-
-def peak_rss_mb() -> float:
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def reset_peak() -> None:
@@ -165,10 +158,10 @@ def main(argv=None) -> None:
     memory = []
     for spp in (16, 256):
         reset_peak()
-        base = peak_rss_mb()
+        base = status_mb("VmHWM")
         image = tr.render(scene, spp=spp, seed=2)
         ((image - target) ** 2).sum().backward()
-        memory.append({"spp": spp, "peak_rss_mb": peak_rss_mb(), "before_mb": base})
+        memory.append({"spp": spp, "peak_rss_mb": status_mb("VmHWM"), "before_mb": base})
 
     use_mitsuba = not args.no_mitsuba and mitsuba_ref.available()
     rough = roughplastic_rows(use_mitsuba, args.repeats)

@@ -36,7 +36,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import machine  # noqa: E402
+from machine import machine, simd, status_mb  # noqa: E402
 
 ROOT = HERE.parent
 CSRC = ROOT / "csrc"
@@ -255,11 +255,7 @@ def embree_version(code: str | None) -> str:
 
 def simd_flags() -> str:
     """The widest x86 vector extensions of the CPU (Embree picks its code path from them)."""
-    try:
-        flags = next(l for l in open("/proc/cpuinfo") if l.startswith("flags")).split()
-    except (OSError, StopIteration):
-        return "unknown"
-    return next((f for f in ("avx512f", "avx2", "avx", "sse4_2") if f in flags), "sse2")
+    return simd(("avx512f", "avx2", "avx", "sse4_2")) or "sse2"
 
 
 def report_rays(out: dict, mach: str) -> list[dict]:
@@ -349,13 +345,6 @@ def run_threads(quick: bool, mach: str) -> list[dict]:
 
 # ---- 3. Memory ------------------------------------------------------------------------------
 
-def vm_hwm_mb() -> float:
-    for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def memory_child(res: int, spp: int, max_depth: int) -> None:
     """Forward + backward render in this (fresh) process; prints a JSON line."""
     import torch
@@ -365,14 +354,14 @@ def memory_child(res: int, spp: int, max_depth: int) -> None:
     key = "red.reflectance.value"
     scene.params[key].requires_grad_()
     target = torch.full((res, res, 3), 0.5)
-    base = vm_hwm_mb()
+    base = status_mb("VmHWM")
     start = time.perf_counter()
     img = tr.render(scene, spp=spp, seed=1)
     loss = ((img - target) ** 2).mean()
     loss.backward()
     seconds = time.perf_counter() - start
     grad = scene.params[key].grad
-    print(json.dumps({"baseline_mb": base, "peak_mb": vm_hwm_mb(), "seconds": seconds,
+    print(json.dumps({"baseline_mb": base, "peak_mb": status_mb("VmHWM"), "seconds": seconds,
                       "grad_finite": bool(torch.isfinite(grad).all())}))
 
 

@@ -22,22 +22,13 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import machine  # noqa: E402
+from machine import machine, status_mb  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 
 SCENE = HERE.parent / "torch_rbpt" / "scenes" / "cornell_box.xml"
 KEY = "red.reflectance.value"
 FLAT_MB = 1.0  # growth after the warm-up below which the loop counts as flat
-
-
-def rss_mb() -> float:
-    """Resident set size of this process in MB (VmRSS of /proc/self/status)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmRSS line in /proc/self/status")
 
 
 def main() -> None:
@@ -66,7 +57,7 @@ def main() -> None:
     print(f"machine: {machine()}")
     print(f"date: {datetime.datetime.now().isoformat(timespec='seconds')}\n")
     print(f"{'iteration':>9s} {'RSS (MB)':>9s} {'ms/iter':>8s} {'loss':>10s}")
-    rows = [{"iteration": 0, "rss_mb": rss_mb(), "ms_per_iteration": float("nan"), "loss": float("nan")}]
+    rows = [{"iteration": 0, "rss_mb": status_mb("VmRSS"), "ms_per_iteration": float("nan"), "loss": float("nan")}]
     print(f"{0:9d} {rows[0]['rss_mb']:9.1f} {'':>8s} {'':>10s}", flush=True)
     start = time.perf_counter()
     for it in range(1, args.iterations + 1):
@@ -79,7 +70,7 @@ def main() -> None:
             param.clamp_(0.0, 1.0)
         if it % args.every == 0:
             now = time.perf_counter()
-            row = {"iteration": it, "rss_mb": rss_mb(), "ms_per_iteration": (now - start) * 1e3 / args.every,
+            row = {"iteration": it, "rss_mb": status_mb("VmRSS"), "ms_per_iteration": (now - start) * 1e3 / args.every,
                    "loss": loss.item()}
             rows.append(row)
             print(f"{it:9d} {row['rss_mb']:9.1f} {row['ms_per_iteration']:8.2f} {row['loss']:10.3e}", flush=True)

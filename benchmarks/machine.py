@@ -6,20 +6,45 @@ import os
 import platform
 
 
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo, with its widest vector extension."""
+def _cpuinfo() -> tuple:
+    """The CPU's model name and flags from /proc/cpuinfo (flags empty if unreadable)."""
     name, flags = platform.processor() or "unknown CPU", []
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name") and name == (platform.processor() or "unknown CPU"):
-                name = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = line.split(":", 1)[1].split()
-                break
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name") and name == (platform.processor() or "unknown CPU"):
+                    name = line.split(":", 1)[1].strip()
+                elif line.startswith("flags"):
+                    flags = line.split(":", 1)[1].split()
+                    break
     except OSError:
         pass
-    simd = next((f for f in ("avx512f", "avx2", "avx") if f in flags), "")
-    return f"{name} ({simd})" if simd else name
+    return name, flags
+
+
+def simd(levels=("avx512f", "avx2", "avx")) -> str:
+    """The widest of the x86 vector extensions `levels` (widest first) that the CPU has, or ''."""
+    flags = _cpuinfo()[1]
+    return next((f for f in levels if f in flags), "")
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo, with its widest vector extension."""
+    name, widest = _cpuinfo()[0], simd()
+    return f"{name} ({widest})" if widest else name
+
+
+def status_mb(field: str) -> float:
+    """A memory figure of this process in MB from /proc/self/status: 'VmRSS' (resident set)
+    or 'VmHWM' (its high-water mark); NaN where the file or the field is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
 
 
 def machine() -> str:
