@@ -10,7 +10,7 @@
 
 /// For the small helpers that the integrators call once per vertex (BSDF and emitter dispatch,
 /// ray spawning, warps): GCC's size heuristics leave them out of the large path loop, and the
-/// calls (their arguments and results passed through memory) cost 5-15% of a render.
+/// calls (their arguments and results passed through memory) cost 7-15% of a render.
 #define RBPT_INLINE [[gnu::always_inline]] inline
 
 namespace rbpt {
