@@ -22,29 +22,29 @@ def _cpuinfo() -> tuple:
     return name, flags
 
 
-def simd(levels=("avx512f", "avx2", "avx")) -> str:
-    """The widest of the x86 vector extensions `levels` (widest first) that the CPU has, or ''."""
-    flags = _cpuinfo()[1]
+def simd(levels=("avx512f", "avx2", "avx"), flags=None) -> str:
+    """The widest of the x86 vector extensions `levels` (widest first) among the CPU's flags
+    (read from /proc/cpuinfo unless given), or ''."""
+    flags = _cpuinfo()[1] if flags is None else flags
     return next((f for f in levels if f in flags), "")
 
 
 def cpu_model() -> str:
     """The CPU's model name from /proc/cpuinfo, with its widest vector extension."""
-    name, widest = _cpuinfo()[0], simd()
+    name, flags = _cpuinfo()
+    widest = simd(flags=flags)
     return f"{name} ({widest})" if widest else name
 
 
 def status_mb(field: str) -> float:
     """A memory figure of this process in MB from /proc/self/status: 'VmRSS' (resident set)
-    or 'VmHWM' (its high-water mark); NaN where the file or the field is missing."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
+    or 'VmHWM' (its high-water mark). Raises where the field is missing: a memory benchmark
+    without its figure has nothing to report."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no {field} line in /proc/self/status")
 
 
 def machine() -> str:

@@ -41,6 +41,8 @@ float erfinv(float x) {
 // samples; Mitsuba stops after three steps whatever the residual), rotated to wi's azimuth.
 // GGX: Heitz 2018, the projected hemisphere of the stretched configuration.
 
+constexpr float InvSqrtPi = 0.56418958354775628f;
+
 VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, const Vec3 &wi)
     : type_(type), alpha_(alpha), w_(normalize(Vec3{alpha * wi.x, alpha * wi.y, wi.z})) {
     if (type == MicrofacetType::GGX) {
@@ -64,7 +66,6 @@ VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, con
     float theta_i = std::acos(cos_i);
     fit_ = 1.f + theta_i * (-0.876f + theta_i * (0.4265f - 0.0594f * theta_i));
     // (e^-cot^2 is below 1e-35 beyond cot = 9: skip libm's slow underflow path.)
-    constexpr float InvSqrtPi = 0.56418958354775628f;
     float tail = cot_i < 9.f ? InvSqrtPi * tan_i_ * std::exp(-cot_i * cot_i) : 0.f;
     normalization_ = 1.f / (1.f + erf_cot_ + tail);
 }
@@ -72,7 +73,6 @@ VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, con
 Vec2 VisibleNormalSampler::part_x(float u1) const {
     if (type_ == MicrofacetType::GGX) return {std::sqrt(u1), 0.f};
     if (polar_) return {std::sqrt(-std::log(std::max(1.f - u1, 1e-30f))), 0.f};
-    constexpr float InvSqrtPi = 0.56418958354775628f;
     // Search interval, parameterised in the erf() domain, and a good initial guess.
     float a = -1.f, c = erf_cot_;
     u1 = std::max(u1, 1e-6f);
