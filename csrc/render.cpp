@@ -92,25 +92,20 @@ bool sample_is_finite(const Dual<T> &L) {
     return SpectrumTraits<RGB<T>>::is_finite(L.v) && SpectrumTraits<RGB<T>>::is_finite(L.d);
 }
 
-/// Weighted sums of the samples splatted into one pixel (value, and tangent for dual numbers).
-struct PixelSum {
-    RGB<double> value, tangent;
+template <typename S>
+struct IsDual : std::false_type {};
+template <typename T>
+struct IsDual<Dual<T>> : std::true_type {};
+
+/// Weighted sums of the samples splatted into one pixel: value (r, g, b) and weight side by
+/// side, so that a splat adds one 4-wide vector w (L, 1) per pixel.
+struct alignas(32) PixelSum {
+    double value[3] = {0.0, 0.0, 0.0};
     double weight = 0.0;
 };
 
-template <typename T>
-void add_weighted(PixelSum &sum, double w, const RGB<T> &L) {
-    for (int c = 0; c < 3; ++c) sum.value[c] += w * double(L[c]);
-}
-template <typename T>
-void add_weighted(PixelSum &sum, double w, const Dual<T> &L) {
-    for (int c = 0; c < 3; ++c) {
-        sum.value[c] += w * double(L.v[c]);
-        sum.tangent[c] += w * double(L.d[c]);
-    }
-}
-
-/// The film of one render: a PixelSum per pixel of the requested rows.
+/// The film of one render: a PixelSum per pixel of the requested rows, and the weighted sums
+/// of the samples' tangents when it splats dual numbers.
 class Film {
 public:
     Film(const Camera &camera, RowRange rows)
@@ -135,23 +130,60 @@ public:
     }
 
     /// Splat a sample taken in pixel (px, py) at `pos` (film coordinates); with L null, only
-    /// its weights (for the backward pass's normalisation).
+    /// its weights (for the backward pass's normalisation). The sums are those of
+    /// for_each_reached: the pixels it skips get zero weights here, which add nothing.
     template <typename S>
     void splat(int px, int py, Vec2 pos, const S *L) {
-        for_each_reached(px, py, pos, [&](size_t i, double w) {
-            sums_[i].weight += w;
-            if (L) add_weighted(sums_[i], w, *L);
-        });
+        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
+        camera_.splat_weights(pos, px, py, wx, wy);
+        // The window of pixels under the filter, clipped to the film's columns and rows.
+        int b = camera_.filter.border();
+        int x = px - camera_.crop_x, y = py - camera_.crop_y;
+        int i0 = std::max(-b, -x), i1 = std::min(b, camera_.crop_width - 1 - x);
+        int j0 = std::max(-b, rows_.begin - y), j1 = std::min(b, rows_.end - 1 - y);
+        double l[4] = {0.0, 0.0, 0.0, 1.0};
+        if (L) value_of(*L, l);
+        for (int j = j0; j <= j1; ++j) {
+            if (wy[j + b] == 0.f) continue;
+            size_t row = size_t(y + j - rows_.begin) * camera_.crop_width + x;
+            PixelSum *sum = &sums_[row];
+            double wyj = wy[j + b];
+            for (int i = i0; i <= i1; ++i) {
+                double w = double(wx[i + b]) * wyj;
+                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
+                sum[i].weight += w;
+            }
+            if constexpr (IsDual<S>::value) {
+                if (!L) continue;
+                if (tangents_.empty()) tangents_.resize(sums_.size());
+                for (int i = i0; i <= i1; ++i) {
+                    double w = double(wx[i + b]) * wyj;
+                    for (int c = 0; c < 3; ++c) tangents_[row + i][c] += w * double(L->d[c]);
+                }
+            }
+        }
     }
 
     /// Pixel i (row-major over the requested rows).
     const PixelSum &operator[](size_t i) const { return sums_[i]; }
+    /// The weighted sum of the tangents splatted into pixel i (dual numbers).
+    RGB<double> tangent(size_t i) const { return tangents_.empty() ? RGB<double>() : tangents_[i]; }
     size_t size() const { return sums_.size(); }
 
 private:
+    template <typename T>
+    static void value_of(const RGB<T> &L, double *l) {
+        for (int c = 0; c < 3; ++c) l[c] = double(L[c]);
+    }
+    template <typename T>
+    static void value_of(const Dual<T> &L, double *l) {
+        for (int c = 0; c < 3; ++c) l[c] = double(L.v[c]);
+    }
+
     const Camera &camera_;
     RowRange rows_;
     std::vector<PixelSum> sums_;
+    std::vector<RGB<double>> tangents_;  ///< allocated at the first dual splat
 };
 
 /// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
@@ -208,7 +240,7 @@ void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
     for (size_t i = 0; i < film.size(); ++i) {
         for (int c = 0; c < 3; ++c) {
             out[3 * i + c] = T(safe_div(film[i].value[c], film[i].weight));
-            out_tangent[3 * i + c] = T(safe_div(film[i].tangent[c], film[i].weight));
+            out_tangent[3 * i + c] = T(safe_div(film.tangent(i)[c], film[i].weight));
         }
     }
 }
