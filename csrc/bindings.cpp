@@ -534,7 +534,9 @@ py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor
         Ray ray;
         ray.o = {o[3 * i], o[3 * i + 1], o[3 * i + 2]};
         ray.d = normalize(Vec3{d[3 * i], d[3 * i + 1], d[3 * i + 2]});
-        SurfaceInteraction si = scene.intersect(ray);
+        Hit hit;
+        scene.bvh.intersect(ray, &hit);
+        SurfaceInteraction si = scene.geometry.interaction(ray, hit, /*all_uv=*/true);
         if (!si.valid) continue;
         t[i] = si.t;
         shape[i] = si.shape;

@@ -38,6 +38,11 @@ struct BSDF {
 
     /// Whether the BSDF has a non-delta component (then emitters are sampled at its surface).
     inline bool smooth() const;
+    /// Whether an input is a texture (bitmap, checkerboard), which reads the surface's uv.
+    bool reads_uv() const {
+        return reflectance.texture >= 0 || specular_reflectance.texture >= 0 ||
+               specular_transmittance.texture >= 0;
+    }
 };
 
 /// Roughplastic's precomputed rough-interface terms for one (distribution, alpha, eta): the

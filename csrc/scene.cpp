@@ -8,6 +8,8 @@
 namespace rbpt {
 
 void Scene::build() {
+    for (Shape &shape : geometry.shapes)
+        shape.needs_uv = shape.bsdf < 0 || bsdfs[shape.bsdf].reads_uv();
     geometry.prepare();
     bvh.build(geometry);
 }

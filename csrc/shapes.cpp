@@ -38,18 +38,19 @@ AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmi
 /// The surface interaction on a disk or cylinder: the hit point projected onto the surface in
 /// double precision, Mitsuba's uv and normals.
 [[gnu::noinline]] static void analytic_interaction(const Shape &shape, const Ray &ray, const Hit &hit,
-                                 SurfaceInteraction *si) {
+                                                   bool uv, SurfaceInteraction *si) {
     double q[3];  // the hit in object space
     if (shape.kind == ShapeKind::Disk) {
         q[0] = hit.u;
         q[1] = hit.v;
         q[2] = 0.0;
         si->n = shape.normal;
-        // uv = (r, phi / 2pi) in object space.
-        float r = std::sqrt(hit.u * hit.u + hit.v * hit.v);
-        float v = std::atan2(hit.v, hit.u) * InvTwoPi;
-        if (v < 0.f) v += 1.f;
-        si->uv = {r, v};
+        if (uv) {  // uv = (r, phi / 2pi) in object space
+            float r = std::sqrt(hit.u * hit.u + hit.v * hit.v);
+            float v = std::atan2(hit.v, hit.u) * InvTwoPi;
+            if (v < 0.f) v += 1.f;
+            si->uv = {r, v};
+        }
     } else {
         double p[3];
         for (int i = 0; i < 3; ++i) p[i] = double(ray.o[i]) + double(ray.d[i]) * double(hit.t);
@@ -60,10 +61,11 @@ AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmi
         q[1] *= scale;
         float cos_phi = float(q[0] / shape.radius), sin_phi = float(q[1] / shape.radius);
         si->n = normalize(shape.local_x * cos_phi + shape.local_y * sin_phi);
-        // uv = (phi / 2pi, z / length) in object space.
-        float phi = std::atan2(float(q[1]), float(q[0]));
-        if (phi < 0.f) phi += 2.f * Pi;
-        si->uv = {phi * InvTwoPi, float(q[2] / shape.length)};
+        if (uv) {  // uv = (phi / 2pi, z / length) in object space
+            float phi = std::atan2(float(q[1]), float(q[0]));
+            if (phi < 0.f) phi += 2.f * Pi;
+            si->uv = {phi * InvTwoPi, float(q[2] / shape.length)};
+        }
     }
     si->p = shape.world_point(q);
     // p is the surface point rounded once from double; the bound covers that and the double
@@ -72,7 +74,7 @@ AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmi
     if (shape.flip_normals) si->n = -si->n;
 }
 
-SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
+SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool all_uv) const {
     SurfaceInteraction si;
     if (!hit.valid()) return si;
     si.valid = true;
@@ -95,11 +97,13 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         } else {
             ns = si.n;
         }
-        if (shape.has_uvs) {
-            const Vec2 &t0 = uvs[tri.v[0]], &t1 = uvs[tri.v[1]], &t2 = uvs[tri.v[2]];
-            si.uv = {t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
-        } else {
-            si.uv = {b1, b2};  // as Mitsuba: barycentrics when the mesh has no texcoords
+        if (shape.needs_uv || all_uv) {
+            if (shape.has_uvs) {
+                const Vec2 &t0 = uvs[tri.v[0]], &t1 = uvs[tri.v[1]], &t2 = uvs[tri.v[2]];
+                si.uv = {t0.x * b0 + t1.x * b1 + t2.x * b2, t0.y * b0 + t1.y * b1 + t2.y * b2};
+            } else {
+                si.uv = {b1, b2};  // as Mitsuba: barycentrics when the mesh has no texcoords
+            }
         }
         if (shape.flip_normals) {
             si.n = -si.n;
@@ -107,7 +111,7 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         }
     } else if (const Shape &shape = analytic_shape(hit.prim); shape.kind != ShapeKind::Sphere) {
         si.shape = int(analytic[hit.prim - triangles.size()]);
-        analytic_interaction(shape, ray, hit, &si);
+        analytic_interaction(shape, ray, hit, shape.needs_uv || all_uv, &si);
         ns = si.n;
     } else {
         si.shape = int(analytic[hit.prim - triangles.size()]);
@@ -124,11 +128,13 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit) const {
         Vec3 local{float(r[0] * scale), float(r[1] * scale), float(r[2] * scale)};
         local = normalize(local);
         si.n = local;
-        // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
-        Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};
-        float phi = std::atan2(q.y, q.x);
-        if (phi < 0.f) phi += 2.f * Pi;
-        si.uv = {phi * InvTwoPi, std::acos(std::clamp(q.z, -1.f, 1.f)) * InvPi};
+        if (shape.needs_uv || all_uv) {
+            // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
+            Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};
+            float phi = std::atan2(q.y, q.x);
+            if (phi < 0.f) phi += 2.f * Pi;
+            si.uv = {phi * InvTwoPi, std::acos(std::clamp(q.z, -1.f, 1.f)) * InvPi};
+        }
         if (shape.flip_normals) si.n = -si.n;
         ns = si.n;
     }

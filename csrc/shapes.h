@@ -27,6 +27,9 @@ struct Shape {
     int attribute_param[2] = {-1, -1};
     int attribute_channels[2] = {0, 0};
     bool has_normals = false, has_uvs = false;
+    /// Whether anything reads the uv of its surface points (a texture of its BSDF): the
+    /// surface interaction computes uv only then (a sphere's costs an atan2 and an acos).
+    bool needs_uv = true;
     std::vector<float> tri_cdf;
     // Sphere: centre, radius and the rotation to its local frame (for uv).
     // Disk: object-to-world affine map, p = center + local_x x + local_y y + local_z z (the
@@ -78,7 +81,7 @@ struct SurfaceInteraction {
     Vec3 p_error;  ///< bound on the rounding error of each coordinate of p
     Vec3 n;        ///< geometric normal (unit, flipped with flip_normals)
     Frame sh_frame;  ///< shading frame around the interpolated normal
-    Vec2 uv;
+    Vec2 uv;       ///< texture coordinates (zero unless the shape needs_uv, see interaction())
     Vec3 wi;       ///< direction towards the ray origin, in the shading frame
     int shape = -1;
     uint32_t tri = ~0u;      ///< triangle hit (meshes), for mesh attributes
@@ -290,8 +293,9 @@ struct Geometry {
         return shapes[analytic[prim - triangles.size()]];
     }
 
-    /// Complete a BVH hit into a surface interaction.
-    SurfaceInteraction interaction(const Ray &ray, const Hit &hit) const;
+    /// Complete a BVH hit into a surface interaction; uv only where the shape needs_uv, or
+    /// everywhere with `all_uv`.
+    SurfaceInteraction interaction(const Ray &ray, const Hit &hit, bool all_uv = false) const;
     /// Sample a point on `shape` as seen from `ref`; pdf in solid angle at `ref`.
     DirectionSample sample_direction(int shape, const Vec3 &ref, Vec2 u) const;
     /// Solid-angle density of sample_direction() for the point `p` with normal `n` it hit.

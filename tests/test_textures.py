@@ -176,3 +176,29 @@ def test09_checkerboard_gradient_is_unbiased_with_independent_seeds():
     se = math.sqrt(rev.var() / n + fd.var() / n)
     assert abs(rev.mean() - fd.mean()) < 4 * se
     assert abs(float(rev.mean())) > 4 * float(rev.std()) / math.sqrt(n)  # resolved, not ~0
+
+
+@pytest.mark.parametrize("shape", [
+    {"type": "sphere", "radius": 0.8},
+    {"type": "disk", "to_world": tr.Transform.rotate([1, 0, 0], 30)},
+    {"type": "cylinder", "p0": [0, -0.8, 0], "p1": [0, 0.8, 0], "radius": 0.6},
+    {"type": "rectangle"},
+])
+def test10_a_textured_shape_of_each_kind_shows_its_texture(shape):
+    """Surface interactions compute uv only for shapes whose BSDF has a texture: a
+    checkerboard on each kind of shape shows both of its colours (a uv left at zero would
+    show color0 alone). Emitter and untextured shapes in the same scene need no uv."""
+    T = tr.Transform
+    checker = {"type": "checkerboard", "color0": {"type": "rgb", "value": [0.9, 0.05, 0.05]},
+               "color1": {"type": "rgb", "value": [0.05, 0.05, 0.9]}, "to_uv": T.scale([4, 4, 1])}
+    scene = tr.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 2},
+        "sensor": {"type": "perspective", "fov": 50, "to_world": T.look_at([0, 0, 3.5], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}}},
+        "textured": dict(shape, bsdf={"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": checker}}),
+        "plain": {"type": "sphere", "center": [5, 0, 0], "radius": 0.5},
+        "sky": {"type": "constant", "radiance": 1.0},
+    })
+    image = tr.render(scene, spp=4, seed=0)
+    r, b = image[..., 0], image[..., 2]
+    assert (r > 3 * b).sum() >= 20 and (b > 3 * r).sum() >= 20
