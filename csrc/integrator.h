@@ -118,7 +118,7 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         prev_p = si.p;
         prev_pdf = bs->pdf;
         prev_delta = bs->delta;
-        ray = si.spawn_ray(si.to_world(bs->wo));
+        si.spawn_ray(si.to_world(bs->wo), &ray);
 
         // Possibly terminate the path with Russian roulette. The survival probability is the
         // roulette throughput itself (capped just below 1), so a surviving path's weight
