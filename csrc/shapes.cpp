@@ -91,7 +91,7 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
         const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
         si.p = p0 * b0 + p1 * b1 + p2 * b2;
         si.p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
-        si.n = normalize(cross(p1 - p0, p2 - p0));
+        si.n = tri.n;
         if (shape.has_normals) {
             ns = normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b1 + normals[tri.v[2]] * b2);
         } else {
@@ -175,7 +175,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         ds.p = p0 * b0 + p1 * b.x + p2 * b.y;
         ds.n = shape.has_normals ? normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b.x +
                                              normals[tri.v[2]] * b.y)
-                                 : normalize(cross(p1 - p0, p2 - p0));
+                                 : tri.n;
         if (shape.flip_normals) ds.n = -ds.n;
         ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
     } else if (shape.kind == ShapeKind::Disk || shape.kind == ShapeKind::Cylinder) {
@@ -254,6 +254,10 @@ float Geometry::pdf_direction(int shape_index, const Vec3 &ref, const Vec3 &p,
 }
 
 void Geometry::prepare() {
+    for (Triangle &tri : triangles) {
+        const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
+        tri.n = normalize(cross(p1 - p0, p2 - p0));
+    }
     for (Shape &shape : shapes) {
         if (shape.kind == ShapeKind::Sphere) {
             shape.area = 4.f * Pi * shape.radius * shape.radius;

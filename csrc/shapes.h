@@ -63,6 +63,7 @@ struct Shape {
 struct Triangle {
     uint32_t v[3];
     uint32_t shape;
+    Vec3 n;  ///< unit geometric normal, normalize((p1 - p0) x (p2 - p0)), set by prepare()
 };
 
 /// The nearest hit found by the BVH: primitive id and its parametric coordinates.
