@@ -108,8 +108,10 @@ struct alignas(32) PixelSum {
 /// of the samples' tangents when it splats dual numbers.
 class Film {
 public:
-    Film(const Camera &camera, RowRange rows)
-        : camera_(camera), rows_(rows), sums_(size_t(rows.end - rows.begin) * camera.crop_width) {}
+    /// A film over `rows`; with `tangents`, it also sums the tangents of dual-number samples.
+    Film(const Camera &camera, RowRange rows, bool tangents = false)
+        : camera_(camera), rows_(rows), sums_(size_t(rows.end - rows.begin) * camera.crop_width),
+          tangents_(tangents ? sums_.size() : 0) {}
 
     /// Call f(i, w) for each pixel i (row-major over the film's rows) that a sample taken in
     /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
@@ -154,8 +156,7 @@ public:
                 sum[i].weight += w;
             }
             if constexpr (IsDual<S>::value) {
-                if (!L) continue;
-                if (tangents_.empty()) tangents_.resize(sums_.size());
+                if (!L || tangents_.empty()) continue;
                 for (int i = i0; i <= i1; ++i) {
                     double w = double(wx[i + b]) * wyj;
                     for (int c = 0; c < 3; ++c) tangents_[row + i][c] += w * double(L->d[c]);
@@ -166,8 +167,8 @@ public:
 
     /// Pixel i (row-major over the requested rows).
     const PixelSum &operator[](size_t i) const { return sums_[i]; }
-    /// The weighted sum of the tangents splatted into pixel i (dual numbers).
-    RGB<double> tangent(size_t i) const { return tangents_.empty() ? RGB<double>() : tangents_[i]; }
+    /// The weighted sum of the tangents splatted into pixel i (a film with `tangents`).
+    const RGB<double> &tangent(size_t i) const { return tangents_[i]; }
     size_t size() const { return sums_.size(); }
 
 private:
@@ -183,7 +184,7 @@ private:
     const Camera &camera_;
     RowRange rows_;
     std::vector<PixelSum> sums_;
-    std::vector<RGB<double>> tangents_;  ///< allocated at the first dual splat
+    std::vector<RGB<double>> tangents_;  ///< empty unless constructed with `tangents`
 };
 
 /// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
@@ -235,7 +236,7 @@ template <typename T>
 void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, T *out, T *out_tangent,
                 const WorkerPool &pool) {
-    Film film(camera, requested_rows(camera, req));
+    Film film(camera, requested_rows(camera, req), /*tangents=*/true);
     splat_samples(ctx, camera, cfg, req, pool, film);
     for (size_t i = 0; i < film.size(); ++i) {
         for (int c = 0; c < 3; ++c) {
