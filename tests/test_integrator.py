@@ -80,6 +80,17 @@ def test05_same_image_for_one_and_two_threads(shared):
     assert torch.equal(one, two)
 
 
+def test05b_same_derivative_image_for_one_and_two_threads(shared):
+    # Forward mode splats tangents too (the film's tangent sums), in the same fixed order.
+    scene = tr.load_file(shared / "cbox/cbox.xml", res=32)
+    tangents = {"red.reflectance.value": torch.tensor([1.0, 0.0, 0.0])}
+    with torch_threads(1):
+        one = tr.render_forward(scene, tangents=tangents, spp=8, seed=5)
+    with torch_threads(2):
+        two = tr.render_forward(scene, tangents=tangents, spp=8, seed=5)
+    assert one.abs().sum() > 0 and torch.equal(one, two)
+
+
 def test06_bands_of_rows_equal_the_full_image(shared):
     scene = tr.load_file(shared / "cbox/cbox.xml", res=16)
     full = tr.render(scene, spp=4, seed=9)
