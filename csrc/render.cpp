@@ -117,16 +117,13 @@ public:
     /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
     template <typename F>
     void for_each_reached(int px, int py, Vec2 pos, F f) const {
-        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
-        camera_.splat_weights(pos, px, py, wx, wy);
-        int b = camera_.filter.border();
-        for (int j = -b; j <= b; ++j) {
-            int y = py - camera_.crop_y + j;
-            if (y < rows_.begin || y >= rows_.end || wy[j + b] == 0.f) continue;
-            for (int i = -b; i <= b; ++i) {
-                int x = px - camera_.crop_x + i;
-                if (x < 0 || x >= camera_.crop_width || wx[i + b] == 0.f) continue;
-                f(size_t(y - rows_.begin) * camera_.crop_width + x, double(wx[i + b]) * double(wy[j + b]));
+        Footprint fp = footprint(px, py, pos);
+        for (int j = fp.j0; j <= fp.j1; ++j) {
+            if (fp.wy[j + fp.b] == 0.f) continue;
+            size_t row = fp.row(j);
+            for (int i = fp.i0; i <= fp.i1; ++i) {
+                if (fp.wx[i + fp.b] == 0.f) continue;
+                f(row + i, double(fp.wx[i + fp.b]) * double(fp.wy[j + fp.b]));
             }
         }
     }
@@ -136,29 +133,23 @@ public:
     /// for_each_reached: the pixels it skips get zero weights here, which add nothing.
     template <typename S>
     void splat(int px, int py, Vec2 pos, const S *L) {
-        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
-        camera_.splat_weights(pos, px, py, wx, wy);
-        // The window of pixels under the filter, clipped to the film's columns and rows.
-        int b = camera_.filter.border();
-        int x = px - camera_.crop_x, y = py - camera_.crop_y;
-        int i0 = std::max(-b, -x), i1 = std::min(b, camera_.crop_width - 1 - x);
-        int j0 = std::max(-b, rows_.begin - y), j1 = std::min(b, rows_.end - 1 - y);
+        Footprint fp = footprint(px, py, pos);
         double l[4] = {0.0, 0.0, 0.0, 1.0};
         if (L) value_of(*L, l);
-        for (int j = j0; j <= j1; ++j) {
-            if (wy[j + b] == 0.f) continue;
-            size_t row = size_t(y + j - rows_.begin) * camera_.crop_width + x;
+        for (int j = fp.j0; j <= fp.j1; ++j) {
+            if (fp.wy[j + fp.b] == 0.f) continue;
+            size_t row = fp.row(j);
             PixelSum *sum = &sums_[row];
-            double wyj = wy[j + b];
-            for (int i = i0; i <= i1; ++i) {
-                double w = double(wx[i + b]) * wyj;
+            double wyj = fp.wy[j + fp.b];
+            for (int i = fp.i0; i <= fp.i1; ++i) {
+                double w = double(fp.wx[i + fp.b]) * wyj;
                 for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
                 sum[i].weight += w;
             }
             if constexpr (IsDual<S>::value) {
                 if (!L || tangents_.empty()) continue;
-                for (int i = i0; i <= i1; ++i) {
-                    double w = double(wx[i + b]) * wyj;
+                for (int i = fp.i0; i <= fp.i1; ++i) {
+                    double w = double(fp.wx[i + fp.b]) * wyj;
                     for (int c = 0; c < 3; ++c) tangents_[row + i][c] += w * double(L->d[c]);
                 }
             }
@@ -172,6 +163,31 @@ public:
     size_t size() const { return sums_.size(); }
 
 private:
+    /// The filter weights of a sample and the window of pixels they cover, offsets
+    /// [i0, i1] x [j0, j1] from the sample's pixel (x, y in the crop window), clipped to the
+    /// film's columns and rows.
+    struct Footprint {
+        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
+        int b, x, y, i0, i1, j0, j1;
+        int row_begin, width;  ///< the film's first row and its width
+        /// Index of pixel (x, y + j); pixel (x + i, y + j) is this plus i.
+        size_t row(int j) const { return size_t(y + j - row_begin) * width + x; }
+    };
+    Footprint footprint(int px, int py, Vec2 pos) const {
+        Footprint fp;
+        camera_.splat_weights(pos, px, py, fp.wx, fp.wy);
+        fp.b = camera_.filter.border();
+        fp.x = px - camera_.crop_x;
+        fp.y = py - camera_.crop_y;
+        fp.i0 = std::max(-fp.b, -fp.x);
+        fp.i1 = std::min(fp.b, camera_.crop_width - 1 - fp.x);
+        fp.j0 = std::max(-fp.b, rows_.begin - fp.y);
+        fp.j1 = std::min(fp.b, rows_.end - 1 - fp.y);
+        fp.row_begin = rows_.begin;
+        fp.width = camera_.crop_width;
+        return fp;
+    }
+
     template <typename T>
     static void value_of(const RGB<T> &L, double *l) {
         for (int c = 0; c < 3; ++c) l[c] = double(L[c]);
