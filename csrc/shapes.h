@@ -105,20 +105,19 @@ struct SurfaceInteraction {
         }
         return o;
     }
-    RBPT_INLINE Ray spawn_ray(const Vec3 &d) const {
-        Ray r;
-        r.o = offset_p(d);
-        r.d = d;
-        return r;
-    }
-    /// spawn_ray(d) written into `ray` field by field. (Assigning the Ray that spawn_ray
-    /// returns to a loop's ray made GCC assemble it on the stack piecewise and reload it as one
+    /// The ray from p along d, written into `ray` field by field. (Assigning a returned Ray
+    /// to a loop's ray made GCC assemble it on the stack piecewise and reload it as one
     /// 32-byte vector: a store-forwarding stall that cost 3-4% of a path-traced render.)
     RBPT_INLINE void spawn_ray(const Vec3 &d, Ray *ray) const {
         ray->o = offset_p(d);
         ray->d = d;
         ray->tmin = 0.f;
         ray->tmax = Infinity;
+    }
+    RBPT_INLINE Ray spawn_ray(const Vec3 &d) const {
+        Ray r;
+        spawn_ray(d, &r);
+        return r;
     }
     RBPT_INLINE Ray spawn_ray_to(const Vec3 &target) const {
         Ray r;
