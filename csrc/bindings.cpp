@@ -125,6 +125,7 @@ Camera make_camera(const py::dict &d) {
     if (d.contains("filter_b")) cam.filter.b = get<float>(d, "filter_b");
     if (d.contains("filter_c")) cam.filter.c = get<float>(d, "filter_c");
     if (d.contains("filter_lobes")) cam.filter.lobes = get<int>(d, "filter_lobes");
+    cam.filter.prepare();
     if (!(cam.filter.radius > 0.f) || cam.filter.border() > Filter::MaxBorder)
         fail("filter radius must lie in (0, " + std::to_string(Filter::MaxBorder) + ".5] pixels, got " +
              std::to_string(cam.filter.radius));
@@ -485,6 +486,20 @@ py::tuple camera_rays(const py::dict &camera, torch::Tensor positions, torch::Te
         t1.data_ptr<float>()[i] = r.tmax;
     }
     return py::make_tuple(o, d, t0, t1);
+}
+
+/// The sensor's filter weights of the rows that eval_row computes for the splats: for each
+/// start offset x0 (N,), the n weights at x0, x0 + 1, ..., x0 + n - 1 (N, n).
+torch::Tensor filter_weights(const py::dict &camera, torch::Tensor x0, int n) {
+    Camera cam = make_camera(camera);
+    if (n < 1 || n > 2 * Filter::MaxBorder + 1)
+        fail("n must lie in [1, " + std::to_string(2 * Filter::MaxBorder + 1) + "], got " + std::to_string(n));
+    if (x0.dim() != 1) fail("x0 must have shape (N,)");
+    x0 = x0.to(torch::kFloat32).contiguous();
+    torch::Tensor w = torch::empty({x0.size(0), n});
+    for (int64_t i = 0; i < x0.size(0); ++i)
+        cam.filter.eval_row(x0.data_ptr<float>()[i], n, w.data_ptr<float>() + i * n);
+    return w;
 }
 
 /// Checks a batch of rays (origins and directions, (N, 3) each, converted to contiguous
@@ -867,4 +882,5 @@ PYBIND11_MODULE(_C, m) {
     m.def("sampler_points", &sampler_points, py::arg("camera"), py::arg("spp"), py::arg("seed"),
           py::arg("pixel"), py::arg("dims"));
     m.def("camera_rays", &camera_rays, py::arg("camera"), py::arg("positions"), py::arg("apertures"));
+    m.def("filter_weights", &filter_weights, py::arg("camera"), py::arg("x0"), py::arg("n"));
 }

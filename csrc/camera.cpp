@@ -1,5 +1,6 @@
 #include "camera.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace rbpt {
@@ -8,6 +9,13 @@ float Filter::eval(float x) const {
     float w;
     eval_row(x, 1, &w);
     return w;
+}
+
+void Filter::prepare() {
+    gaussian_.alpha = -1.f / (2.f * stddev * stddev);
+    gaussian_.bias = std::exp(gaussian_.alpha * radius * radius);
+    for (int j = 0; j < 2 * MaxBorder + 1; ++j)
+        gaussian_.square_exp[j] = std::exp(gaussian_.alpha * float(j * j));
 }
 
 void Filter::eval_row(float x0, int n, float *w) const {
@@ -19,11 +27,30 @@ void Filter::eval_row(float x0, int n, float *w) const {
             for (int k = 0; k < n; ++k) w[k] = std::max(0.f, 1.f - std::abs(x0 + float(k)) / radius);
             return;
         case FilterType::Gaussian: {
-            float alpha = -1.f / (2.f * stddev * stddev);
-            float bias = std::exp(alpha * radius * radius);  // once per row, not per weight
-            for (int k = 0; k < n; ++k) {
-                float x = x0 + float(k);
-                w[k] = std::max(0.f, std::exp(alpha * x * x) - bias);
+            const float alpha = gaussian_.alpha;
+            if (n == 1) {
+                w[0] = std::max(0.f, std::exp(alpha * x0 * x0) - gaussian_.bias);
+                return;
+            }
+            // Two exps per row instead of one per weight. From the offset x nearest zero,
+            //   exp(alpha (x + j)^2) = exp(alpha x^2) exp(2 alpha x)^j exp(alpha j^2),
+            // with the last factor tabulated. Every exponent stays small where the weights are
+            // large (|2 alpha x| <= |alpha| < 32 for a filter wider than a pixel), so each
+            // weight is within a few ulps of its exp.
+            int c = std::clamp(int(std::floor(0.5f - x0)), 0, n - 1);
+            float x = x0 + float(c);
+            float center = std::exp(alpha * x * x), step = std::exp(2.f * alpha * x);
+            w[c] = std::max(0.f, center - gaussian_.bias);
+            float g = center;
+            for (int j = 1; c + j < n; ++j) {
+                g *= step;
+                w[c + j] = std::max(0.f, g * gaussian_.square_exp[j] - gaussian_.bias);
+            }
+            g = center;
+            float inv_step = 1.f / step;
+            for (int j = 1; c - j >= 0; ++j) {
+                g *= inv_step;
+                w[c - j] = std::max(0.f, g * gaussian_.square_exp[j] - gaussian_.bias);
             }
             return;
         }

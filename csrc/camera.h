@@ -24,6 +24,8 @@ struct Filter {
     float b = 1.f / 3.f, c = 1.f / 3.f;  ///< Mitchell-Netravali's B and C (radius 2)
     int lobes = 3;                        ///< Lanczos: sinc(x) sinc(x / lobes), radius = lobes
 
+    /// Derive the constants eval() uses from the parameters above; call after setting them.
+    void prepare();
     /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias;
     /// mitchell: the cubic of Mitchell and Netravali 1988 in |x| < 2; lanczos: windowed sinc).
     float eval(float x) const;
@@ -35,6 +37,16 @@ struct Filter {
     int border() const {
         return type == FilterType::Box ? 0 : std::max(0, int(std::ceil(radius - 0.5f)));
     }
+
+private:
+    /// The gaussian's exponent factor -1 / (2 stddev^2), its value at the radius (subtracted
+    /// so that the profile reaches zero there) and exp(alpha j^2) for the whole-pixel steps j
+    /// of a row. NaN until prepare().
+    struct {
+        float alpha = std::numeric_limits<float>::quiet_NaN();
+        float bias = std::numeric_limits<float>::quiet_NaN();
+        float square_exp[2 * MaxBorder + 1];
+    } gaussian_;
 };
 
 enum class CameraType { Perspective, Orthographic, ThinLens };

@@ -108,3 +108,40 @@ def test05_pixel_format_is_accepted_and_render_stays_linear_rgb():
     with pytest.raises(tr.SceneError, match="pixel_format must be one of rgb, rgba, luminance"):
         tr.load_dict({"type": "scene", "sensor": {"type": "perspective", "film": {
             "type": "hdrfilm", "pixel_format": "y"}}})
+
+
+def _profile(film, x):
+    """Mitsuba's 1D filter profiles in float64, for the weights eval_row computes."""
+    r = film.filter_radius
+    if film.filter == "gaussian":
+        a = -1 / (2 * film.filter_stddev ** 2)
+        return torch.clamp(torch.exp(a * x * x) - math.exp(a * r * r), min=0)
+    if film.filter == "tent":
+        return torch.clamp(1 - x.abs() / r, min=0)
+    b, c, ax = film.filter_b, film.filter_c, x.abs()
+    inner = (12 - 9 * b - 6 * c) * ax ** 3 + (-18 + 12 * b + 6 * c) * ax ** 2 + (6 - 2 * b)
+    outer = (-b - 6 * c) * ax ** 3 + (6 * b + 30 * c) * ax ** 2 + (-12 * b - 48 * c) * ax + (8 * b + 24 * c)
+    return torch.where(ax < 1, inner, torch.where(ax < 2, outer, torch.zeros_like(x))) / 6
+
+
+@pytest.mark.parametrize("rfilter", [{"type": "gaussian"}, {"type": "gaussian", "stddev": 0.13},
+                                     {"type": "gaussian", "stddev": 1.7}, {"type": "tent", "radius": 1.5},
+                                     {"type": "mitchell"}])
+def test06_splat_weights_follow_the_profile(rfilter):
+    # The weights of a splat's row (the gaussian's from two exps per row and a table) equal
+    # the profile at every offset, for sample positions all over a pixel.
+    sensor = tr.load_dict({"type": "scene", "sensor": {"type": "perspective", "film": {
+        "type": "hdrfilm", "width": 4, "height": 4, "rfilter": rfilter}}}).sensor
+    film = sensor.film
+    b = max(0, math.ceil(film.filter_radius - 0.5))
+    n = 2 * b + 1
+    frac = torch.linspace(0, 1, 1001, dtype=torch.float64)[:-1]
+    x0 = -b + 0.5 - frac  # the first pixel centre's offset from a sample at px + frac
+    w = tr._C.filter_weights(sensor.native(), x0.float(), n).double()
+    x = x0.float().double()[:, None] + torch.arange(n, dtype=torch.float64)
+    expected = _profile(film, x)
+    assert w.shape == (1000, n)
+    # Float evaluation: within a few ulps of 1 (Mitchell's cubic cancels more).
+    tolerance = 2e-6 if film.filter == "mitchell" else 3e-7
+    assert float((w - expected).abs().max()) < tolerance * float(expected.abs().max())
+    assert float(w.sum(1).min()) > 0
