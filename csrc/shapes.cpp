@@ -143,11 +143,13 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
     return si;
 }
 
-static float solid_angle_pdf(float pdf_area, const Vec3 &ref, const Vec3 &p, const Vec3 &n) {
+/// Solid-angle density at `ref` of sampling uniformly by area a shape of area `area` at point
+/// `p` with normal `n`: dist^2 / (area |cos|).
+static float solid_angle_pdf(float area, const Vec3 &ref, const Vec3 &p, const Vec3 &n) {
     Vec3 d = p - ref;
     float dist2 = squared_norm(d);
     float cos = std::abs(dot(n, d)) / std::sqrt(dist2);
-    return cos > 0.f ? pdf_area * dist2 / cos : 0.f;
+    return cos > 0.f ? dist2 / (area * cos) : 0.f;
 }
 
 /// Squared radius beyond which a reference point counts as outside a sphere. Points on the
@@ -161,6 +163,7 @@ static float outside_radius2(const Shape &shape) {
 DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec2 u) const {
     const Shape &shape = shapes[shape_index];
     DirectionSample ds;
+    bool by_area = shape.kind != ShapeKind::Sphere;  // and spheres seen from inside (below)
     if (shape.kind == ShapeKind::Mesh) {
         // Pick a triangle proportionally to its area, reusing u.x, then a uniform point on it.
         const std::vector<float> &cdf = shape.tri_cdf;
@@ -177,7 +180,6 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
                                              normals[tri.v[2]] * b.y)
                                  : tri.n;
         if (shape.flip_normals) ds.n = -ds.n;
-        ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
     } else if (shape.kind == ShapeKind::Disk || shape.kind == ShapeKind::Cylinder) {
         // Uniform in area (Mitsuba's sample_position), converted to solid angle.
         double q[3];
@@ -196,7 +198,6 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         }
         ds.p = shape.world_point(q);
         if (shape.flip_normals) ds.n = -ds.n;
-        ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
     } else {
         Vec3 dc = shape.center - ref;
         float dc2 = squared_norm(dc);
@@ -224,17 +225,24 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
             Vec3 d = warp::square_to_uniform_sphere(u);
             ds.p = shape.center + d * shape.radius;
             ds.n = d;
-            ds.pdf = solid_angle_pdf(1.f / shape.area, ref, ds.p, ds.n);
+            by_area = true;
         }
         if (shape.flip_normals) ds.n = -ds.n;
     }
-    ds.d = ds.p - ref;
-    ds.dist = norm(ds.d);
+    // The direction, and the density of points sampled by area converted to solid angle:
+    // dist^2 / (area |cos|), sharing the distance.
+    Vec3 d = ds.p - ref;
+    float dist2 = squared_norm(d);
+    ds.dist = std::sqrt(dist2);
     if (ds.dist == 0.f) {
         ds.pdf = 0.f;
         return ds;
     }
-    ds.d = ds.d / ds.dist;
+    ds.d = d * (1.f / ds.dist);
+    if (by_area) {
+        float cos = std::abs(dot(ds.n, ds.d));
+        ds.pdf = cos > 0.f ? dist2 / (shape.area * cos) : 0.f;
+    }
     return ds;
 }
 
@@ -250,7 +258,7 @@ float Geometry::pdf_direction(int shape_index, const Vec3 &ref, const Vec3 &p,
                        : 1.f / (Pi * sin_max2);
         }
     }
-    return solid_angle_pdf(1.f / shape.area, ref, p, n);
+    return solid_angle_pdf(shape.area, ref, p, n);
 }
 
 void Geometry::prepare() {
