@@ -1,9 +1,9 @@
 // Layout of the BVH.
 //
 // Build: a binary tree of BinaryNodes with the binned SAH (16 bins, leaves of at most 8
-// primitives), as in pbrt, except that a leaf costs by the packs of four triangles it needs,
-// since four are tested at once (Embree's block size), plus one pack per analytic shape
-// (sphere, disk, cylinder).
+// primitives), as in pbrt, except that a leaf costs by the packs of BVHWidth triangles it
+// needs, since that many are tested at once, plus one pack per analytic shape (sphere, disk,
+// cylinder).
 //
 // Collapse: each binary inner node becomes a BVHNode whose children are found by repeatedly
 // opening the inner child of largest surface area until there are BVHWidth of them (Wald et
@@ -12,11 +12,11 @@
 // lo[axis][child] and hi[axis][child], so that one AVX (SSE) slab test covers all of them,
 // and a 32-bit reference per child:
 //   - an inner node: its index in nodes_ (the top bit clear);
-//   - a leaf: LeafBit | first << 3 | (count - 1), a run of `count` (at most 8) PrimPack4s
+//   - a leaf: LeafBit | first << 3 | (count - 1), a run of `count` (at most 8) PrimPacks
 //     starting at packs_[first];
 //   - nothing (fewer than BVHWidth children): EmptyChild, with an empty box no ray enters.
-// A PrimPack4 holds four consecutive primitives of a leaf: the vertices of its triangles,
-// again per lane, for the 4-wide watertight test, and the ids; analytic lanes are tested one
+// A PrimPack holds BVHWidth consecutive primitives of a leaf: the vertices of its triangles,
+// again per lane, for the packed watertight test, and the ids; analytic lanes are tested one
 // at a time (in double precision).
 //
 // Traversal: a stack of (reference, entry distance). An inner node's hit children are visited
@@ -36,11 +36,16 @@ namespace rbpt {
 namespace {
 
 /// A node of the binary build tree (pbrt's linear layout: the first child follows its parent).
+/// The tree goes down to single primitives; the SAH's leaves are marked, and so is everything
+/// below them: the collapse makes a leaf of a marked node, or opens it to fill a wide node's
+/// free child slots.
 struct BinaryNode {
     Vec3 lo;
-    uint32_t offset;  ///< leaf: first primitive slot; interior: index of the second child
+    uint32_t offset;  ///< a single primitive: its slot; otherwise: index of the second child
     Vec3 hi;
-    uint32_t count;   ///< primitives in a leaf, 0 for interior nodes
+    uint32_t count;   ///< 1 for a single primitive, 0 otherwise
+    uint32_t first = 0, total = 0;  ///< the subtree's primitives: slots [first, first + total)
+    bool leaf = false;              ///< an SAH leaf or inside one
 };
 
 constexpr uint32_t LeafBit = 0x80000000u;
@@ -104,20 +109,21 @@ Bounds analytic_bounds(const Shape &s) {
 
 constexpr int Bins = 16;
 constexpr int MaxLeafSize = 8;
-/// Build costs: a binary node and the test of a pack of four triangles.
+/// Build costs: a binary node and the test of a pack of BVHWidth triangles.
 constexpr float TraversalCost = 1.f, PackCost = 4.f;
-/// Tests for n primitives of which `analytic` are analytic shapes, in packs: triangles go four at a
-/// time, while each analytic shape costs about a pack (a double precision test of its own).
+/// Tests for n primitives of which `analytic` are analytic shapes, in packs: triangles go
+/// BVHWidth at a time, while each analytic shape costs about a pack (a double precision test
+/// of its own).
 inline float pack_tests(uint32_t n, uint32_t analytic) {
-    return float((n - analytic + 3) / 4 + analytic);
+    return float((n - analytic + BVHWidth - 1) / BVHWidth + analytic);
 }
 
 struct Builder {
     std::vector<PrimInfo> &prims;
     std::vector<BinaryNode> &nodes;
 
-    // Build the subtree over prims[begin, end) into nodes[index].
-    void build(uint32_t index, uint32_t begin, uint32_t end) {
+    // Build the subtree over prims[begin, end) into nodes[index]; in_leaf: below an SAH leaf.
+    void build(uint32_t index, uint32_t begin, uint32_t end, bool in_leaf = false) {
         Bounds bounds, centroids;
         uint32_t analytic = 0;
         for (uint32_t i = begin; i < end; ++i) {
@@ -129,11 +135,15 @@ struct Builder {
         node.lo = bounds.lo;
         node.hi = bounds.hi;
         uint32_t count = end - begin;
-        auto make_leaf = [&] {
-            nodes[index].offset = begin;
-            nodes[index].count = count;
-        };
-        if (count <= 2) return make_leaf();
+        node.first = begin;
+        node.total = count;
+        node.leaf = in_leaf || count <= 2;
+        if (count == 1) {
+            node.offset = begin;
+            node.count = 1;
+            return;
+        }
+        if (count == 2) return split(index, begin, begin + 1, end, true);
 
         // Find the best binned SAH split over the three axes.
         int best_axis = -1, best_split = -1;
@@ -179,14 +189,14 @@ struct Builder {
             }
         }
         if (best_axis < 0) {
-            if (count <= MaxLeafSize) return make_leaf();
             // All centroids coincide: split the list in the middle.
-            return split(index, begin, begin + count / 2, end);
+            if (count <= MaxLeafSize) nodes[index].leaf = true;
+            return split(index, begin, begin + count / 2, end, nodes[index].leaf);
         }
         float leaf_cost = PackCost * pack_tests(count, analytic);
         float area = std::max(bounds.area(), 1e-30f);
         float split_cost = TraversalCost + PackCost * best_cost / area;
-        if (count <= MaxLeafSize && leaf_cost <= split_cost) return make_leaf();
+        if (count <= MaxLeafSize && leaf_cost <= split_cost) nodes[index].leaf = true;
         float scale = Bins / extent[best_axis];
         auto mid_it = std::partition(prims.begin() + begin, prims.begin() + end,
                                      [&](const PrimInfo &p) {
@@ -195,16 +205,16 @@ struct Builder {
                                                                         scale));
                                          return b <= best_split;
                                      });
-        split(index, begin, uint32_t(mid_it - prims.begin()), end);
+        split(index, begin, uint32_t(mid_it - prims.begin()), end, nodes[index].leaf);
     }
 
-    void split(uint32_t index, uint32_t begin, uint32_t mid, uint32_t end) {
+    void split(uint32_t index, uint32_t begin, uint32_t mid, uint32_t end, bool in_leaf) {
         uint32_t left = uint32_t(nodes.size());
         nodes.emplace_back();
-        build(left, begin, mid);
+        build(left, begin, mid, in_leaf);
         uint32_t right = uint32_t(nodes.size());
         nodes.emplace_back();
-        build(right, mid, end);
+        build(right, mid, end, in_leaf);
         nodes[index].offset = right;
         nodes[index].count = 0;
     }
@@ -215,22 +225,22 @@ double binary_area(const BinaryNode &n) {
     return 2.0 * (double(e.x) * e.y + double(e.y) * e.z + double(e.z) * e.x);
 }
 
-/// Turns the binary tree into BVHWidth-wide nodes and its leaves into packs of four primitives.
+/// Turns the binary tree into BVHWidth-wide nodes and its leaves into packs of BVHWidth primitives.
 struct Collapser {
     const std::vector<BinaryNode> &bin;
     const std::vector<PrimInfo> &prims;
     const Geometry &geometry;
     std::vector<BVHNode> &nodes;
-    std::vector<PrimPack4> &packs;
+    std::vector<PrimPack> &packs;
 
     uint32_t leaf(const BinaryNode &n) {
         uint32_t first = uint32_t(packs.size());
-        for (uint32_t i = 0; i < n.count; i += 4) {
-            PrimPack4 pack{};
-            for (uint32_t lane = 0; lane < 4; ++lane) {
+        for (uint32_t i = 0; i < n.total; i += BVHWidth) {
+            PrimPack pack{};
+            for (uint32_t lane = 0; lane < BVHWidth; ++lane) {
                 pack.prim[lane] = ~0u;
-                if (i + lane >= n.count) continue;
-                uint32_t id = prims[n.offset + i + lane].id;
+                if (i + lane >= n.total) continue;
+                uint32_t id = prims[n.first + i + lane].id;
                 pack.prim[lane] = id;
                 if (!geometry.is_triangle(id)) {
                     bool sphere = geometry.analytic_shape(id).kind == ShapeKind::Sphere;
@@ -249,25 +259,33 @@ struct Collapser {
         return LeafBit | first << 3 | (count - 1);
     }
 
-    /// The node for binary inner node `b` at depth `depth`; returns its index.
+    /// The node for binary node `b` (not a single primitive) at depth `depth`; returns its
+    /// index.
     uint32_t inner(uint32_t b, int depth) {
         if (depth >= MaxDepth) throw std::runtime_error("BVH: the tree is deeper than 64 levels");
-        // Open the inner child of largest area until there are BVHWidth children.
+        // Open the inner child of largest area until there are BVHWidth children; then, while
+        // slots are left, open SAH leaves too: a child slot costs nothing in the node's test,
+        // and two tighter boxes let a ray skip one (the SAH counts the box areas of rays from
+        // outside, whereas most rays of a closed room start inside it).
         uint32_t kids[BVHWidth] = {b + 1, bin[b].offset};
         int n = 2;
-        while (n < BVHWidth) {
-            int best = -1;
-            double best_area = -1.0;
-            for (int i = 0; i < n; ++i) {
-                if (bin[kids[i]].count == 0 && binary_area(bin[kids[i]]) > best_area) {
-                    best = i;
-                    best_area = binary_area(bin[kids[i]]);
+        for (bool open_leaves : {false, true}) {
+            while (n < BVHWidth) {
+                int best = -1;
+                double best_area = -1.0;
+                for (int i = 0; i < n; ++i) {
+                    const BinaryNode &kid = bin[kids[i]];
+                    bool openable = kid.count == 0 && (open_leaves || !kid.leaf);
+                    if (openable && binary_area(kid) > best_area) {
+                        best = i;
+                        best_area = binary_area(kid);
+                    }
                 }
+                if (best < 0) break;
+                uint32_t k = kids[best];
+                kids[best] = k + 1;
+                kids[n++] = bin[k].offset;
             }
-            if (best < 0) break;
-            uint32_t k = kids[best];
-            kids[best] = k + 1;
-            kids[n++] = bin[k].offset;
         }
         return node(kids, n, depth);
     }
@@ -283,7 +301,7 @@ struct Collapser {
                 const BinaryNode &kid = bin[kids[c]];
                 lo = kid.lo;
                 hi = kid.hi;
-                ref = kid.count ? leaf(kid) : inner(kids[c], depth + 1);
+                ref = kid.leaf ? leaf(kid) : inner(kids[c], depth + 1);
             }
             BVHNode &node = nodes[index];  // (inner() may have moved the vector)
             for (int axis = 0; axis < 3; ++axis) {
@@ -322,73 +340,53 @@ void BVH::build(const Geometry &geometry) {
     bin.emplace_back();
     Builder{prims, bin}.build(0, 0, n);
     double root = binary_area(bin[0]);
-    for (const BinaryNode &node : bin)
-        sah_cost_ += binary_area(node) / root * (node.count ? double(node.count) : 1.0);
+    // (Over the SAH's tree: its leaves count their primitives, the nodes above them 1.)
+    std::vector<uint32_t> todo{0};
+    while (!todo.empty()) {
+        const BinaryNode &node = bin[todo.back()];
+        uint32_t index = todo.back();
+        todo.pop_back();
+        sah_cost_ += binary_area(node) / root * (node.leaf ? double(node.total) : 1.0);
+        if (!node.leaf) todo.insert(todo.end(), {index + 1, node.offset});
+    }
 
     // Collapse it; a root that is a leaf becomes the only child of the root node.
     Collapser collapser{bin, prims, geometry, nodes_, packs_};
     const uint32_t root_kid = 0;
-    if (bin[0].count == 0) {
+    if (bin[0].count == 0) {  // (a root that is an SAH leaf is opened into the free slots)
         collapser.inner(0, 0);
     } else {
         collapser.node(&root_kid, 1, 0);
     }
 }
 
-/// BVHWidth float lanes: the few vector operations the slab test needs, on AVX or SSE.
-#if defined(__AVX__)
-struct Lanes {
-    using V = __m256;
-    static V set1(float x) { return _mm256_set1_ps(x); }
-    static V load(const float *p) { return _mm256_load_ps(p); }
-    static void store(float *p, V a) { _mm256_storeu_ps(p, a); }
-    static V sub(V a, V b) { return _mm256_sub_ps(a, b); }
-    static V mul(V a, V b) { return _mm256_mul_ps(a, b); }
-    static V max(V a, V b) { return _mm256_max_ps(a, b); }
-    static V min(V a, V b) { return _mm256_min_ps(a, b); }
-    static int le_mask(V a, V b) { return _mm256_movemask_ps(_mm256_cmp_ps(a, b, _CMP_LE_OQ)); }
-};
-#else
-struct Lanes {
-    using V = __m128;
-    static V set1(float x) { return _mm_set1_ps(x); }
-    static V load(const float *p) { return _mm_load_ps(p); }
-    static void store(float *p, V a) { _mm_storeu_ps(p, a); }
-    static V sub(V a, V b) { return _mm_sub_ps(a, b); }
-    static V mul(V a, V b) { return _mm_mul_ps(a, b); }
-    static V max(V a, V b) { return _mm_max_ps(a, b); }
-    static V min(V a, V b) { return _mm_min_ps(a, b); }
-    static int le_mask(V a, V b) { return _mm_movemask_ps(_mm_cmple_ps(a, b)); }
-};
-#endif
-
 /// The slab test of a ray against all child boxes of a node at once (Williams et al. 2005):
 /// the per-ray constants splatted over the lanes, and the test returning the mask of children
 /// entered before `tmax` with their entry distances. A NaN (0 * inf, the origin on a slab plane
 /// of a parallel ray) is dropped by max/min, which return their second operand.
 struct NodeTest {
-    using L = Lanes;
-    L::V o[3], inv_d[3], tmin;
+    simd::V o[3], inv_d[3], tmin;
     bool neg[3];
-    NodeTest(const Ray &ray) : tmin(L::set1(ray.tmin)) {
+    NodeTest(const Ray &ray) : tmin(simd::set1(ray.tmin)) {
         for (int axis = 0; axis < 3; ++axis) {
             float inv = 1.f / ray.d[axis];
-            o[axis] = L::set1(ray.o[axis]);
-            inv_d[axis] = L::set1(inv);
+            o[axis] = simd::set1(ray.o[axis]);
+            inv_d[axis] = simd::set1(inv);
             neg[axis] = std::signbit(inv);
         }
     }
     int operator()(const BVHNode &node, float tmax, float t_entry[BVHWidth]) const {
-        L::V t0 = tmin, t1 = L::set1(tmax);
+        using namespace simd;
+        V t0 = tmin, t1 = set1(tmax);
         for (int axis = 0; axis < 3; ++axis) {
-            L::V lo = L::load(node.lo[axis]), hi = L::load(node.hi[axis]);
-            L::V t_near = L::mul(L::sub(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
-            L::V t_far = L::mul(L::sub(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
-            t0 = L::max(t_near, t0);
-            t1 = L::min(t_far, t1);
+            V lo = load(node.lo[axis]), hi = load(node.hi[axis]);
+            V t_near = mul(sub(neg[axis] ? hi : lo, o[axis]), inv_d[axis]);
+            V t_far = mul(sub(neg[axis] ? lo : hi, o[axis]), inv_d[axis]);
+            t0 = max(t_near, t0);
+            t1 = min(t_far, t1);
         }
-        L::store(t_entry, t0);
-        return L::le_mask(t0, L::mul(t1, L::set1(BoxWiden)));
+        store(t_entry, t0);
+        return mask(le(t0, mul(t1, set1(BoxWiden))));
     }
 };
 
@@ -399,7 +397,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
     // The triangle test's per-ray constants, set up at the first leaf: most rays of a large
     // scene leave it after a few boxes, without reaching one.
-    RayPrecomp4 pc;
+    RayPrecompPack pc;
     bool pc_ready = false;
     const NodeTest node_test(ray);
     float tmax = ray.tmax;
@@ -420,13 +418,15 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                 // Start loading the hit children now: traversal is bound by memory latency.
                 for (int m = mask; m; m &= m - 1) {
                     uint32_t child = node.child[__builtin_ctz(m)];
-                    const char *p = (child & LeafBit)
-                                        ? reinterpret_cast<const char *>(&packs_[(child & ~LeafBit) >> 3])
-                                        : reinterpret_cast<const char *>(&nodes_[child]);
-                    _mm_prefetch(p, _MM_HINT_T0);
-                    _mm_prefetch(p + 64, _MM_HINT_T0);
-                    _mm_prefetch(p + 128, _MM_HINT_T0);
-                    if (BVHWidth == 8) _mm_prefetch(p + 192, _MM_HINT_T0);
+                    if (child & LeafBit) {  // its first pack
+                        const char *p = reinterpret_cast<const char *>(&packs_[(child & ~LeafBit) >> 3]);
+                        for (size_t line = 0; line < sizeof(PrimPack); line += 64)
+                            _mm_prefetch(p + line, _MM_HINT_T0);
+                    } else {
+                        const char *p = reinterpret_cast<const char *>(&nodes_[child]);
+                        for (size_t line = 0; line < sizeof(BVHNode); line += 64)
+                            _mm_prefetch(p + line, _MM_HINT_T0);
+                    }
                 }
                 int c = __builtin_ctz(mask);
                 mask &= mask - 1;
@@ -461,15 +461,15 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
             // Intersect the packs of a leaf.
             uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
             for (uint32_t p = first; p < last; ++p) {
-                const PrimPack4 &pack = packs_[p];
+                const PrimPack &pack = packs_[p];
                 if (pack.triangles) {
-                    float t[4], u[4], v[4];
+                    float t[BVHWidth], u[BVHWidth], v[BVHWidth];
                     if (!pc_ready) {
-                        pc = RayPrecomp4(ray);
+                        pc = RayPrecompPack(ray);
                         pc_ready = true;
                     }
-                    int mask = intersect_triangles4(pc, pack.tris, pack.triangles, ray.tmin, tmax,
-                                                    t, u, v);
+                    int mask = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, tmax,
+                                                   t, u, v);
                     if (mask) {
                         if (AnyHit) return true;
                         int best = __builtin_ctz(mask);
@@ -513,7 +513,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
     }
 }
 
-bool BVH::intersect_others(const Ray &ray, const PrimPack4 &pack, float tmax, Hit *hit) const {
+bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const {
     bool found = false;
     for (int mask = pack.others; mask; mask &= mask - 1) {
         uint32_t prim = pack.prim[__builtin_ctz(mask)];

@@ -1,23 +1,21 @@
 // Bounding volume hierarchy over all primitives (triangles and analytic
 // shapes: spheres, disks, cylinders), built once at
 // load with the binned surface area heuristic, collapsed into an 8-wide tree when the build targets
-// AVX (one slab test of eight child boxes), a 4-wide one with SSE otherwise, and leaves of
-// four-triangle packs (one SSE test). The layout is described in bvh.cpp.
+// AVX (one slab test of eight child boxes), a 4-wide one with SSE otherwise, with leaves of
+// triangle packs as wide (one test of eight or four triangles). The layout is described in
+// bvh.cpp.
 #pragma once
 
 #include <cstdint>
 #include <vector>
 
 #include "shapes.h"
+#include "simd.h"
 
 namespace rbpt {
 
-/// Children per node: eight boxes fill an AVX register, four an SSE one.
-#if defined(__AVX__)
-constexpr int BVHWidth = 8;
-#else
-constexpr int BVHWidth = 4;
-#endif
+/// Children per node, and primitives per leaf pack: eight fill an AVX register, four an SSE one.
+constexpr int BVHWidth = simd::Width;
 
 /// A node: the boxes of its BVHWidth children side by side (lo[axis][child]) and a reference
 /// per child (an inner node, a leaf or nothing; see bvh.cpp).
@@ -28,11 +26,11 @@ struct alignas(64) BVHNode {
 };
 static_assert(sizeof(BVHNode) == 32 * BVHWidth, "a node should fill whole cache lines");
 
-/// Up to four primitives of a leaf: triangle vertices for the SSE test, the primitive ids,
-/// and which lanes hold triangles and analytic shapes (spheres, disks, cylinders).
-struct PrimPack4 {
-    TrianglePack4 tris;
-    uint32_t prim[4];
+/// Up to BVHWidth primitives of a leaf: triangle vertices for the packed test, the primitive
+/// ids, and which lanes hold triangles and analytic shapes (spheres, disks, cylinders).
+struct PrimPack {
+    TrianglePack tris;
+    uint32_t prim[BVHWidth];
     uint8_t triangles;  ///< bit mask of the lanes holding triangles
     uint8_t spheres;    ///< bit mask of the lanes holding spheres
     uint8_t others;     ///< bit mask of the lanes holding other analytic shapes (disks, cylinders)
@@ -56,11 +54,11 @@ private:
     template <bool AnyHit>
     bool traverse(const Ray &ray, Hit *hit) const;
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
-    bool intersect_others(const Ray &ray, const PrimPack4 &pack, float tmax, Hit *hit) const;
+    bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
 
     const Geometry *geometry_ = nullptr;
     std::vector<BVHNode> nodes_;
-    std::vector<PrimPack4> packs_;  ///< leaf contents, each leaf a run of packs
+    std::vector<PrimPack> packs_;  ///< leaf contents, each leaf a run of packs
     double sah_cost_ = 0.0;
 };
 

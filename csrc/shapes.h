@@ -3,12 +3,11 @@
 // emitters.
 #pragma once
 
-#include <emmintrin.h>  // SSE2, part of the x86-64 baseline
-
 #include <cstdint>
 #include <vector>
 
 #include "math.h"
+#include "simd.h"
 
 namespace rbpt {
 
@@ -153,106 +152,99 @@ struct RayPrecomp {
     }
 };
 
-/// Up to four triangles laid out for intersect_triangles4: v[vertex][axis][lane].
-struct alignas(16) TrianglePack4 {
-    float v[3][3][4];
+/// Up to simd::Width triangles laid out for intersect_triangles: v[vertex][axis][lane].
+struct alignas(32) TrianglePack {
+    float v[3][3][simd::Width];
 };
 
-/// Per-ray constants of intersect_triangles4: those of RayPrecomp and the origin, permuted
-/// and splatted over four lanes.
-struct RayPrecomp4 {
+/// Per-ray constants of intersect_triangles: those of RayPrecomp and the origin, permuted
+/// and splatted over the lanes.
+struct RayPrecompPack {
     int kx, ky, kz;
-    __m128 ox, oy, oz, sx, sy, sz;
-    RayPrecomp4() = default;
-    explicit RayPrecomp4(const Ray &ray) {
+    simd::V ox, oy, oz, sx, sy, sz;
+    RayPrecompPack() = default;
+    explicit RayPrecompPack(const Ray &ray) {
         RayPrecomp pc(ray.d);
         kx = pc.kx;
         ky = pc.ky;
         kz = pc.kz;
-        ox = _mm_set1_ps(ray.o[kx]);
-        oy = _mm_set1_ps(ray.o[ky]);
-        oz = _mm_set1_ps(ray.o[kz]);
-        sx = _mm_set1_ps(pc.sx);
-        sy = _mm_set1_ps(pc.sy);
-        sz = _mm_set1_ps(pc.sz);
+        ox = simd::set1(ray.o[kx]);
+        oy = simd::set1(ray.o[ky]);
+        oz = simd::set1(ray.o[kz]);
+        sx = simd::set1(pc.sx);
+        sy = simd::set1(pc.sy);
+        sz = simd::set1(pc.sz);
     }
 };
 
-/// Four watertight ray-triangle tests at once with SSE (Woop, Benthin and Wald 2013): the
+/// simd::Width watertight ray-triangle tests at once (Woop, Benthin and Wald 2013): the
 /// vertices are sheared into the ray's frame and the hit is decided by the signs of three 2D
 /// edge functions, so no ray slips between triangles sharing an edge; an edge function that
 /// is exactly zero is recomputed in double precision. Tests the lanes set in `lanes` and returns
 /// the mask of those hit in (tmin, tmax), with their t and barycentrics in t/u/v[lane].
-inline int intersect_triangles4(const RayPrecomp4 &pc, const TrianglePack4 &pack, int lanes,
-                                float tmin, float tmax, float t_out[4], float u_out[4],
-                                float v_out[4]) {
-    const __m128 ox = pc.ox, oy = pc.oy, oz = pc.oz, sx = pc.sx, sy = pc.sy, sz = pc.sz;
+inline int intersect_triangles(const RayPrecompPack &pc, const TrianglePack &pack, int lanes,
+                               float tmin, float tmax, float t_out[simd::Width],
+                               float u_out[simd::Width], float v_out[simd::Width]) {
+    using namespace simd;
+    constexpr int W = Width;
     // Translate to the ray origin and shear (per vertex: x, y and the unscaled z).
-    __m128 x[3], y[3], z[3];
+    V x[3], y[3], z[3];
     for (int k = 0; k < 3; ++k) {
-        z[k] = _mm_sub_ps(_mm_load_ps(pack.v[k][pc.kz]), oz);
-        x[k] = _mm_sub_ps(_mm_sub_ps(_mm_load_ps(pack.v[k][pc.kx]), ox), _mm_mul_ps(sx, z[k]));
-        y[k] = _mm_sub_ps(_mm_sub_ps(_mm_load_ps(pack.v[k][pc.ky]), oy), _mm_mul_ps(sy, z[k]));
+        z[k] = sub(load(pack.v[k][pc.kz]), pc.oz);
+        x[k] = sub(sub(load(pack.v[k][pc.kx]), pc.ox), mul(pc.sx, z[k]));
+        y[k] = sub(sub(load(pack.v[k][pc.ky]), pc.oy), mul(pc.sy, z[k]));
     }
     // Edge functions U (edge bc), V (edge ca), W (edge ab).
-    __m128 U = _mm_sub_ps(_mm_mul_ps(x[2], y[1]), _mm_mul_ps(y[2], x[1]));
-    __m128 V = _mm_sub_ps(_mm_mul_ps(x[0], y[2]), _mm_mul_ps(y[0], x[2]));
-    __m128 W = _mm_sub_ps(_mm_mul_ps(x[1], y[0]), _mm_mul_ps(y[1], x[0]));
-    const __m128 zero = _mm_setzero_ps();
-    int on_edge = _mm_movemask_ps(_mm_or_ps(_mm_or_ps(_mm_cmpeq_ps(U, zero), _mm_cmpeq_ps(V, zero)),
-                                            _mm_cmpeq_ps(W, zero))) & lanes;
+    V U = sub(mul(x[2], y[1]), mul(y[2], x[1]));
+    V Ve = sub(mul(x[0], y[2]), mul(y[0], x[2]));
+    V We = sub(mul(x[1], y[0]), mul(y[1], x[0]));
+    const V z0 = zero();
+    int on_edge = mask(bit_or(bit_or(eq(U, z0), eq(Ve, z0)), eq(We, z0))) & lanes;
     if (on_edge) {
         // Edge case: redo the 2D edge tests of those lanes in double (watertight edges).
-        alignas(16) float ax[4], ay[4], bx[4], by[4], cx[4], cy[4], u[4], v[4], w[4];
-        _mm_store_ps(ax, x[0]); _mm_store_ps(ay, y[0]);
-        _mm_store_ps(bx, x[1]); _mm_store_ps(by, y[1]);
-        _mm_store_ps(cx, x[2]); _mm_store_ps(cy, y[2]);
-        _mm_store_ps(u, U); _mm_store_ps(v, V); _mm_store_ps(w, W);
-        for (int i = 0; i < 4; ++i) {
+        alignas(32) float ax[W], ay[W], bx[W], by[W], cx[W], cy[W], u[W], v[W], w[W];
+        store(ax, x[0]); store(ay, y[0]);
+        store(bx, x[1]); store(by, y[1]);
+        store(cx, x[2]); store(cy, y[2]);
+        store(u, U); store(v, Ve); store(w, We);
+        for (int i = 0; i < W; ++i) {
             if (!(on_edge >> i & 1)) continue;
             u[i] = float(double(cx[i]) * by[i] - double(cy[i]) * bx[i]);
             v[i] = float(double(ax[i]) * cy[i] - double(ay[i]) * cx[i]);
             w[i] = float(double(bx[i]) * ay[i] - double(by[i]) * ax[i]);
         }
-        U = _mm_load_ps(u); V = _mm_load_ps(v); W = _mm_load_ps(w);
+        U = load(u); Ve = load(v); We = load(w);
     }
     // Inside when the edge functions do not differ in sign.
-    __m128 neg = _mm_or_ps(_mm_or_ps(_mm_cmplt_ps(U, zero), _mm_cmplt_ps(V, zero)), _mm_cmplt_ps(W, zero));
-    __m128 pos = _mm_or_ps(_mm_or_ps(_mm_cmpgt_ps(U, zero), _mm_cmpgt_ps(V, zero)), _mm_cmpgt_ps(W, zero));
-    __m128 det = _mm_add_ps(_mm_add_ps(U, V), W);
-    int inside = ~_mm_movemask_ps(_mm_and_ps(neg, pos)) & _mm_movemask_ps(_mm_cmpneq_ps(det, zero)) & lanes;
+    V neg = bit_or(bit_or(lt(U, z0), lt(Ve, z0)), lt(We, z0));
+    V pos = bit_or(bit_or(gt(U, z0), gt(Ve, z0)), gt(We, z0));
+    V det = add(add(U, Ve), We);
+    int inside = ~mask(bit_and(neg, pos)) & mask(neq(det, z0)) & lanes;
     if (!inside) return 0;
-    __m128 T = _mm_add_ps(_mm_add_ps(_mm_mul_ps(U, _mm_mul_ps(sz, z[0])), _mm_mul_ps(V, _mm_mul_ps(sz, z[1]))),
-                          _mm_mul_ps(W, _mm_mul_ps(sz, z[2])));
-    __m128 inv_det = _mm_div_ps(_mm_set1_ps(1.f), det);
-    __m128 t = _mm_mul_ps(T, inv_det);
-    int hit = _mm_movemask_ps(_mm_and_ps(_mm_cmpgt_ps(t, _mm_set1_ps(tmin)), _mm_cmplt_ps(t, _mm_set1_ps(tmax)))) & inside;
+    V T = add(add(mul(U, mul(pc.sz, z[0])), mul(Ve, mul(pc.sz, z[1]))), mul(We, mul(pc.sz, z[2])));
+    V inv_det = div(set1(1.f), det);
+    V t = mul(T, inv_det);
+    int hit = mask(bit_and(gt(t, set1(tmin)), lt(t, set1(tmax)))) & inside;
     if (!hit) return 0;
     // Keep only hits farther than the rounding error of t (pbrt-v4's conservative bound), so a
     // ray leaving a surface from its error-bounded offset origin never finds that surface.
-    const __m128 sign = _mm_set1_ps(-0.f);
-    auto abs3 = [&](const __m128 a[3]) {
-        return _mm_max_ps(_mm_andnot_ps(sign, a[0]), _mm_max_ps(_mm_andnot_ps(sign, a[1]), _mm_andnot_ps(sign, a[2])));
-    };
-    __m128 max_zt = _mm_mul_ps(_mm_andnot_ps(sign, sz), abs3(z)), max_xt = abs3(x), max_yt = abs3(y);
-    __m128 delta_z = _mm_mul_ps(_mm_set1_ps(gamma(3)), max_zt);
-    __m128 delta_x = _mm_mul_ps(_mm_set1_ps(gamma(5)), _mm_add_ps(max_xt, max_zt));
-    __m128 delta_y = _mm_mul_ps(_mm_set1_ps(gamma(5)), _mm_add_ps(max_yt, max_zt));
-    __m128 delta_e = _mm_mul_ps(_mm_set1_ps(2.f),
-                                _mm_add_ps(_mm_mul_ps(_mm_set1_ps(gamma(2)), _mm_mul_ps(max_xt, max_yt)),
-                                           _mm_add_ps(_mm_mul_ps(delta_y, max_xt), _mm_mul_ps(delta_x, max_yt))));
-    __m128 e[3] = {U, V, W};
-    __m128 max_e = abs3(e);
-    __m128 delta_t = _mm_mul_ps(
-        _mm_mul_ps(_mm_set1_ps(3.f),
-                   _mm_add_ps(_mm_mul_ps(_mm_set1_ps(gamma(3)), _mm_mul_ps(max_e, max_zt)),
-                              _mm_add_ps(_mm_mul_ps(delta_e, max_zt), _mm_mul_ps(delta_z, max_e)))),
-        _mm_andnot_ps(sign, inv_det));
-    hit &= _mm_movemask_ps(_mm_cmpgt_ps(t, delta_t));
+    auto abs3 = [](const V a[3]) { return max(abs(a[0]), max(abs(a[1]), abs(a[2]))); };
+    V max_zt = mul(abs(pc.sz), abs3(z)), max_xt = abs3(x), max_yt = abs3(y);
+    V delta_z = mul(set1(gamma(3)), max_zt);
+    V delta_x = mul(set1(gamma(5)), add(max_xt, max_zt));
+    V delta_y = mul(set1(gamma(5)), add(max_yt, max_zt));
+    V delta_e = mul(set1(2.f), add(mul(set1(gamma(2)), mul(max_xt, max_yt)),
+                                   add(mul(delta_y, max_xt), mul(delta_x, max_yt))));
+    V e[3] = {U, Ve, We};
+    V max_e = abs3(e);
+    V delta_t = mul(mul(set1(3.f), add(mul(set1(gamma(3)), mul(max_e, max_zt)),
+                                       add(mul(delta_e, max_zt), mul(delta_z, max_e)))),
+                    abs(inv_det));
+    hit &= mask(gt(t, delta_t));
     if (!hit) return 0;
-    _mm_storeu_ps(t_out, t);
-    _mm_storeu_ps(u_out, _mm_mul_ps(V, inv_det));
-    _mm_storeu_ps(v_out, _mm_mul_ps(W, inv_det));
+    store(t_out, t);
+    store(u_out, mul(Ve, inv_det));
+    store(v_out, mul(We, inv_det));
     return hit;
 }
 

@@ -1,0 +1,59 @@
+// Float lanes for the BVH: the vector operations of the slab test and of the packed
+// ray-triangle test, eight lanes wide where the build targets AVX (AVX2 and AVX-512 machines
+// alike) and four with SSE (the x86-64 baseline) otherwise.
+#pragma once
+
+#include <immintrin.h>
+
+namespace rbpt::simd {
+
+#if defined(__AVX__)
+constexpr int Width = 8;
+using V = __m256;
+inline V set1(float x) { return _mm256_set1_ps(x); }
+inline V zero() { return _mm256_setzero_ps(); }
+inline V load(const float *p) { return _mm256_load_ps(p); }
+inline void store(float *p, V a) { _mm256_storeu_ps(p, a); }
+inline V add(V a, V b) { return _mm256_add_ps(a, b); }
+inline V sub(V a, V b) { return _mm256_sub_ps(a, b); }
+inline V mul(V a, V b) { return _mm256_mul_ps(a, b); }
+inline V div(V a, V b) { return _mm256_div_ps(a, b); }
+inline V min(V a, V b) { return _mm256_min_ps(a, b); }
+inline V max(V a, V b) { return _mm256_max_ps(a, b); }
+inline V bit_or(V a, V b) { return _mm256_or_ps(a, b); }
+inline V bit_and(V a, V b) { return _mm256_and_ps(a, b); }
+inline V and_not(V a, V b) { return _mm256_andnot_ps(a, b); }  ///< ~a & b
+inline V eq(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_EQ_OQ); }
+inline V neq(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_NEQ_UQ); }
+inline V lt(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+inline V le(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+inline V gt(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
+inline int mask(V a) { return _mm256_movemask_ps(a); }
+#else
+constexpr int Width = 4;
+using V = __m128;
+inline V set1(float x) { return _mm_set1_ps(x); }
+inline V zero() { return _mm_setzero_ps(); }
+inline V load(const float *p) { return _mm_load_ps(p); }
+inline void store(float *p, V a) { _mm_storeu_ps(p, a); }
+inline V add(V a, V b) { return _mm_add_ps(a, b); }
+inline V sub(V a, V b) { return _mm_sub_ps(a, b); }
+inline V mul(V a, V b) { return _mm_mul_ps(a, b); }
+inline V div(V a, V b) { return _mm_div_ps(a, b); }
+inline V min(V a, V b) { return _mm_min_ps(a, b); }
+inline V max(V a, V b) { return _mm_max_ps(a, b); }
+inline V bit_or(V a, V b) { return _mm_or_ps(a, b); }
+inline V bit_and(V a, V b) { return _mm_and_ps(a, b); }
+inline V and_not(V a, V b) { return _mm_andnot_ps(a, b); }  ///< ~a & b
+inline V eq(V a, V b) { return _mm_cmpeq_ps(a, b); }
+inline V neq(V a, V b) { return _mm_cmpneq_ps(a, b); }
+inline V lt(V a, V b) { return _mm_cmplt_ps(a, b); }
+inline V le(V a, V b) { return _mm_cmple_ps(a, b); }
+inline V gt(V a, V b) { return _mm_cmpgt_ps(a, b); }
+inline int mask(V a) { return _mm_movemask_ps(a); }
+#endif
+
+/// |a| in every lane.
+inline V abs(V a) { return and_not(set1(-0.f), a); }
+
+}  // namespace rbpt::simd
