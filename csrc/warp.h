@@ -6,19 +6,28 @@
 
 namespace rbpt::warp {
 
-/// Shirley-Chiu concentric map from [0,1)^2 to the unit disk.
+/// sin and cos of an angle in [-pi/4, pi/4] by the minimax polynomials of Cephes' sinf and
+/// cosf (within an ulp or two; no range reduction, no libm call).
+RBPT_INLINE Vec2 sincos_octant(float x) {
+    float x2 = x * x;
+    float s = x + x * x2 * (-1.6666654611e-1f + x2 * (8.3321608736e-3f + x2 * -1.9515295891e-4f));
+    float c = 1.f - 0.5f * x2 +
+              x2 * x2 * (4.166664568298827e-2f + x2 * (-1.388731625493765e-3f + x2 * 2.443315711809948e-5f));
+    return {s, c};
+}
+
+/// Shirley-Chiu concentric map from [0,1)^2 to the unit disk. The angle is pi/4 t with
+/// |t| <= 1, or pi/2 minus such an angle: sin and cos of the octant angle, swapped in the
+/// second case.
 RBPT_INLINE Vec2 square_to_uniform_disk_concentric(Vec2 u) {
     float x = 2.f * u.x - 1.f, y = 2.f * u.y - 1.f;
     if (x == 0.f && y == 0.f) return {0.f, 0.f};
-    float r, phi;
     if (std::abs(x) > std::abs(y)) {
-        r = x;
-        phi = (Pi / 4.f) * (y / x);
-    } else {
-        r = y;
-        phi = Pi / 2.f - (Pi / 4.f) * (x / y);
+        Vec2 sc = sincos_octant((Pi / 4.f) * (y / x));
+        return {x * sc.y, x * sc.x};
     }
-    return {r * std::cos(phi), r * std::sin(phi)};
+    Vec2 sc = sincos_octant((Pi / 4.f) * (x / y));
+    return {y * sc.x, y * sc.y};
 }
 
 /// Cosine-weighted hemisphere around +z; pdf = cos(theta) / pi.
