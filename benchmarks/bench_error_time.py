@@ -15,7 +15,9 @@ metric). From the two curves it derives:
 * a bias check: the spp-weighted mean of all renders of the sweep against the reference's
   image mean, per renderer, with a noise estimate (a difference beyond noise is a bug).
 
-Timing, "warm": best wall-clock time of --repeats renders (seeds 0, 1, ...), after
+Timing, "warm": best wall-clock time of --repeats renders (seeds 0, 1, ...), the two
+renderers taking turns render by render (so that a shared host's load changes hit both),
+after
   - ours: one untimed 1 spp render of the loaded scene (BSDF tables, page faults);
   - Mitsuba (llvm_ad_rgb): one untimed render of one pass at the same pass size and a
     different seed, so the JIT kernels are traced and compiled; with drjit's kernel
@@ -225,66 +227,88 @@ def reference(name: str, path: Path, size: tuple[int, int], ref_spp: int, use_mi
     return img, file.name
 
 
-def sweep_ours(path: Path, size, spps, repeats, ref) -> tuple[list[dict], torch.Tensor]:
-    scene = load_ours(path, size)
-    render_ours(scene, 1, 999)  # warm-up (untimed)
-    rows, acc, total = [], torch.zeros_like(ref, dtype=torch.float64), 0
-    for spp in spps:
-        times, errs, rels, rays = [], [], [], 0
-        for k in range(repeats):
-            t0 = time.perf_counter()
-            img, rays = render_ours(scene, spp, k)
-            times.append(time.perf_counter() - t0)
-            errs.append(rmse(img, ref))
-            rels.append(rel_error(img, ref))
-            acc += img.double() * spp
-            total += spp
-        t = min(times)
-        rows.append({"spp": spp, "seconds": t, "rmse": statistics.fmean(errs),
-                     "rel_error": statistics.fmean(rels), "mrays_per_s": rays / t / 1e6})
-        print(f"  ours     {spp:6d} spp  {t:8.3f} s  RMSE {rows[-1]['rmse']:.5f}", flush=True)
-    return rows, (acc / total).float()
+class OursRenderer:
+    name = "ours"
+
+    def __init__(self, path: Path, size):
+        self.scene = load_ours(path, size)
+        render_ours(self.scene, 1, 999)  # warm-up (untimed): BSDF tables, page faults
+
+    def warm(self, spp: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def timed(self, spp: int, seed: int) -> tuple[torch.Tensor, float, int]:
+        """(image, wall-clock seconds, rays traced)."""
+        t0 = time.perf_counter()
+        img, rays = render_ours(self.scene, spp, seed)
+        return img, time.perf_counter() - t0, rays
 
 
-def sweep_mitsuba(path: Path, size, spps, repeats, ref) -> tuple[list[dict], torch.Tensor]:
-    import drjit as dr
-    mscene = mitsuba_ref.load_scene(path, width=size[0], height=size[1])
-    jit = not mitsuba_ref.variant().startswith("scalar")
-    flag = dr.flag(dr.JitFlag.KernelHistory) if jit else None
-    rows, acc, total = [], torch.zeros_like(ref, dtype=torch.float64), 0
-    try:
-        if jit:
+class MitsubaRenderer:
+    name = "Mitsuba"
+
+    def __init__(self, path: Path, size):
+        import drjit as dr
+        self.dr, self.size = dr, size
+        self.scene = mitsuba_ref.load_scene(path, width=size[0], height=size[1])
+        self.jit = not mitsuba_ref.variant().startswith("scalar")
+        if self.jit:  # (a timed render that compiled a kernel shows in the history)
+            self.flag = dr.flag(dr.JitFlag.KernelHistory)
             dr.set_flag(dr.JitFlag.KernelHistory, True)
-        for spp in spps:
-            if jit:  # warm-up: one pass of the size the timed renders use, another seed
-                mitsuba_ref.render(mscene, mitsuba_pass_spp(size, spp), seed=REF_SEED + 777)
-                dr.sync_thread()
-                mitsuba_ref._compiled_kernels(dr)  # clears the history
-            times, errs, rels, extra, k = [], [], [], 0, 0
-            while k < repeats:
-                dr.sync_thread()
-                t0 = time.perf_counter()
-                img = mitsuba_ref.render(mscene, spp, seed=k)
-                dr.sync_thread()
-                dt = time.perf_counter() - t0
-                if jit and mitsuba_ref._compiled_kernels(dr) and extra < 2:
-                    extra += 1  # compiled a kernel: not warm, run again
-                    print(f"  Mitsuba  {spp:6d} spp: a timed render compiled a kernel; not counted, re-run", flush=True)
-                    continue
-                img = torch.from_numpy(img)
-                times.append(dt)
-                errs.append(rmse(img, ref))
-                rels.append(rel_error(img, ref))
-                acc += img.double() * spp
-                total += spp
-                k += 1
-            rows.append({"spp": spp, "seconds": min(times), "rmse": statistics.fmean(errs),
-                         "rel_error": statistics.fmean(rels), "mrays_per_s": float("nan")})
-            print(f"  Mitsuba  {spp:6d} spp  {rows[-1]['seconds']:8.3f} s  RMSE {rows[-1]['rmse']:.5f}", flush=True)
-    finally:
-        if jit:
-            dr.set_flag(dr.JitFlag.KernelHistory, flag)
-    return rows, (acc / total).float()
+
+    def close(self) -> None:
+        if self.jit:
+            self.dr.set_flag(self.dr.JitFlag.KernelHistory, self.flag)
+
+    def warm(self, spp: int) -> None:
+        if self.jit:  # one pass of the size the timed renders use, another seed
+            mitsuba_ref.render(self.scene, mitsuba_pass_spp(self.size, spp), seed=REF_SEED + 777)
+            self.dr.sync_thread()
+            mitsuba_ref._compiled_kernels(self.dr)  # clears the history
+
+    def timed(self, spp: int, seed: int) -> tuple[torch.Tensor, float, int]:
+        dr = self.dr
+        for attempt in range(3):
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            img = mitsuba_ref.render(self.scene, spp, seed=seed)
+            dr.sync_thread()
+            dt = time.perf_counter() - t0
+            if not (self.jit and mitsuba_ref._compiled_kernels(dr)) or attempt == 2:
+                break
+            print(f"  Mitsuba  {spp:6d} spp: a timed render compiled a kernel; not counted, re-run", flush=True)
+        return torch.from_numpy(img), dt, 0
+
+
+def sweep(renderers: list, spps, repeats, ref) -> dict:
+    """Each renderer's rows and spp-weighted mean image. The renderers take turns render by
+    render (ours, Mitsuba, ours, ...), so that both see the same load of a shared host."""
+    rows = {r.name: [] for r in renderers}
+    acc = {r.name: torch.zeros_like(ref, dtype=torch.float64) for r in renderers}
+    total = 0
+    for spp in spps:
+        for r in renderers:
+            r.warm(spp)
+        runs = {r.name: [] for r in renderers}
+        for k in range(repeats):
+            for r in renderers:
+                img, dt, rays = r.timed(spp, k)
+                runs[r.name].append((dt, rmse(img, ref), rel_error(img, ref), rays))
+                acc[r.name] += img.double() * spp
+            total += spp
+        for r in renderers:
+            times = [x[0] for x in runs[r.name]]
+            t = min(times)
+            rays = runs[r.name][0][3]
+            rows[r.name].append({"spp": spp, "seconds": t,
+                                 "rmse": statistics.fmean(x[1] for x in runs[r.name]),
+                                 "rel_error": statistics.fmean(x[2] for x in runs[r.name]),
+                                 "mrays_per_s": rays / t / 1e6 if rays else float("nan")})
+            print(f"  {r.name:8s} {spp:6d} spp  {t:8.3f} s  RMSE {rows[r.name][-1]['rmse']:.5f}", flush=True)
+    return {r.name: (rows[r.name], (acc[r.name] / total).float()) for r in renderers}
 
 
 def bias(mean_img: torch.Tensor, ref: torch.Tensor) -> tuple[list[float], list[float]]:
@@ -462,11 +486,17 @@ def main(argv=None) -> list[dict]:
         size = film_size(path, args.res)
         print(f"\n[{name}] {size[0]}x{size[1]}, spp {args.spp}, {args.repeats} repeat(s)", flush=True)
         ref, ref_name = reference(name, path, size, args.ref_spp, use_mitsuba, args.cache)
-        ours_rows, ours_mean = sweep_ours(path, size, args.spp, args.repeats, ref)
+        renderers = [OursRenderer(path, size)] + ([MitsubaRenderer(path, size)] if use_mitsuba else [])
+        try:
+            swept = sweep(renderers, args.spp, args.repeats, ref)
+        finally:
+            for r in renderers:
+                r.close()
+        ours_rows, ours_mean = swept["ours"]
         sc = {"name": name, "what": what, "size": size, "ref_name": ref_name, "repeats": args.repeats,
               "ours_rows": ours_rows, "mitsuba_rows": [], "bias": {"ours": bias(ours_mean, ref)}}
         if use_mitsuba:
-            mrows, m_mean = sweep_mitsuba(path, size, args.spp, args.repeats, ref)
+            mrows, m_mean = swept["Mitsuba"]
             curve = [(r["seconds"], r["rmse"]) for r in ours_rows]
             ours_by_spp = {r["spp"]: r for r in ours_rows}
             for m in mrows:
@@ -487,7 +517,8 @@ def main(argv=None) -> list[dict]:
     for sc in results:
         print_table(sc, info)
     print("\nTimes: best of the repeats, warm (ours after an untimed 1 spp render; Mitsuba after "
-          "an untimed render that compiled its JIT kernels). Errors: mean over the repeats.")
+          "an untimed render that compiled its JIT kernels), the two renderers taking turns render "
+          "by render. Errors: mean over the repeats.")
     csv_path = write_outputs(results, info, args.out)
     print(f"wrote {csv_path}, {args.out / 'error_time.png'} and error_time_<scene>.png")
     return results
