@@ -317,17 +317,19 @@ def run_threads(quick: bool, mach: str) -> list[dict]:
     rows = []
     saved = torch.get_num_threads()
     try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
-            with torch.no_grad():
-                tr.render(scene, spp=1)  # warm-up
-                times = []
-                for k in range(repeats):
+        # 1 and 2 threads take turns, so that a shared host's load changes hit both.
+        times = {1: [], 2: []}
+        with torch.no_grad():
+            tr.render(scene, spp=1)  # warm-up
+            for k in range(repeats):
+                for threads in (1, 2):
+                    torch.set_num_threads(threads)
                     start = time.perf_counter()
                     tr.render(scene, spp=spp, seed=k)
-                    times.append(time.perf_counter() - start)
+                    times[threads].append(time.perf_counter() - start)
+        for threads in (1, 2):
             rows.append({"part": "threads", "scene": "cbox", "res": res, "spp": spp, "threads": threads,
-                         "seconds": min(times)})
+                         "seconds": min(times[threads])})
         _, rays = render_with_stats(scene, spp=spp, seed=0)
     finally:
         torch.set_num_threads(saved)
