@@ -317,9 +317,10 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--spp", type=int, nargs="+", default=[4, 16, 64, 256])
-    ap.add_argument("--seeds", type=int, default=12,
+    ap.add_argument("--seeds", type=int, default=24,
                     help="timed runs per spp (the error is an RMS over them: with 4, one unlucky "
-                         "seed can set it)")
+                         "seed can set it; with 12, two runs of one build differed by up to 2x "
+                         "at one spp)")
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--ref-chunk", type=int, default=256, help="spp of each reference run")
     ap.add_argument("--kinds", nargs="+", default=None, help="subset of: reflectance texture roughness roughplastic")
