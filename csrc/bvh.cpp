@@ -7,7 +7,9 @@
 //
 // Collapse: each binary inner node becomes a BVHNode whose children are found by repeatedly
 // opening the inner child of largest surface area until there are BVHWidth of them (Wald et
-// al. 2008, "Getting rid of packets"; Embree's BVH8 on AVX machines). A BVHNode (256 bytes
+// al. 2008, "Getting rid of packets"; Embree's BVH8 on AVX machines); when no inner child is
+// left and slots are, the SAH's leaves are opened the same way (the binary tree goes on below
+// them down to single primitives). A BVHNode (256 bytes
 // when 8-wide, 128 when 4-wide) keeps the child boxes in structure-of-arrays form,
 // lo[axis][child] and hi[axis][child], so that one AVX (SSE) slab test covers all of them,
 // and a 32-bit reference per child:

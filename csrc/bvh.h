@@ -35,6 +35,7 @@ struct PrimPack {
     uint8_t spheres;    ///< bit mask of the lanes holding spheres
     uint8_t others;     ///< bit mask of the lanes holding other analytic shapes (disks, cylinders)
 };
+static_assert(BVHWidth <= 8, "PrimPack's lane masks are 8 bits wide");
 
 class BVH {
 public:
