@@ -167,8 +167,14 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
     if (shape.kind == ShapeKind::Mesh) {
         // Pick a triangle proportionally to its area, reusing u.x, then a uniform point on it.
         const std::vector<float> &cdf = shape.tri_cdf;
-        auto it = std::upper_bound(cdf.begin() + 1, cdf.end(), u.x);
-        uint32_t local = uint32_t(std::min<std::ptrdiff_t>(it - cdf.begin() - 1, std::ptrdiff_t(shape.tri_count) - 1));
+        uint32_t local;
+        if (shape.tri_count <= 8) {  // a count, without the binary search's branches
+            local = 0;
+            for (uint32_t i = 1; i < shape.tri_count; ++i) local += cdf[i] <= u.x;
+        } else {
+            auto it = std::upper_bound(cdf.begin() + 1, cdf.end(), u.x);
+            local = uint32_t(std::min<std::ptrdiff_t>(it - cdf.begin() - 1, std::ptrdiff_t(shape.tri_count) - 1));
+        }
         float width = cdf[local + 1] - cdf[local];
         u.x = std::min(width > 0.f ? (u.x - cdf[local]) / width : 0.f, 0.99999994f);
         const Triangle &tri = triangles[shape.tri_begin + local];
