@@ -164,6 +164,12 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
     const Shape &shape = shapes[shape_index];
     DirectionSample ds;
     bool by_area = shape.kind != ShapeKind::Sphere;  // and spheres seen from inside (below)
+    // The normal of the area element that by_area densities convert with: the surface's own.
+    // On meshes that is the face normal, not the interpolated vertex normal that ds.n carries
+    // (which decides the emitting side, as in a hit's shading frame). Mitsuba converts with
+    // the vertex normal, so that its light samples on curved meshes disagree with BSDF
+    // samples hitting the same light (tests/test_shapes.py::test02b).
+    Vec3 n_area;
     if (shape.kind == ShapeKind::Mesh) {
         // Pick a triangle proportionally to its area, reusing u.x, then a uniform point on it.
         const std::vector<float> &cdf = shape.tri_cdf;
@@ -186,6 +192,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
                                              normals[tri.v[2]] * b.y)
                                  : tri.n;
         if (shape.flip_normals) ds.n = -ds.n;
+        n_area = tri.n;
     } else if (shape.kind == ShapeKind::Disk || shape.kind == ShapeKind::Cylinder) {
         // Uniform in area (Mitsuba's sample_position), converted to solid angle.
         double q[3];
@@ -204,6 +211,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         }
         ds.p = shape.world_point(q);
         if (shape.flip_normals) ds.n = -ds.n;
+        n_area = ds.n;
     } else {
         Vec3 dc = shape.center - ref;
         float dc2 = squared_norm(dc);
@@ -231,6 +239,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
             Vec3 d = warp::square_to_uniform_sphere(u);
             ds.p = shape.center + d * shape.radius;
             ds.n = d;
+            n_area = d;
             by_area = true;
         }
         if (shape.flip_normals) ds.n = -ds.n;
@@ -246,7 +255,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
     }
     ds.d = d * (1.f / ds.dist);
     if (by_area) {
-        float cos = std::abs(dot(ds.n, ds.d));
+        float cos = std::abs(dot(n_area, ds.d));
         ds.pdf = cos > 0.f ? dist2 / (shape.area * cos) : 0.f;
     }
     return ds;

@@ -2,6 +2,7 @@
 and renders that Mitsuba 3.9.1 made (tests/references/make_shape_references.py; Mitsuba is
 not needed here), and area lights on them against the renderer's own BSDF sampling."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -74,6 +75,20 @@ def test02_area_light_sampling_matches_bsdf_sampling(light):
     (a, sa), (b, sb) = means["emitter"], means["bsdf"]
     assert a > 0.02
     assert abs(a - b) < 4 * float(torch.sqrt(sa ** 2 + sb ** 2)), means
+
+
+@pytest.mark.parametrize("count", [5, 12])
+def test02b_mesh_light_sampling_matches_bsdf_sampling(tmp_path, count):
+    """A mesh light whose triangles have very different areas (a fan over a bent arc): its
+    emitter samples pick triangles by area (a count over the CDF up to 8 triangles, a binary
+    search above) and match BSDF sampling, as in test02."""
+    angles = [0.0] + [math.pi * (k / count) ** 2 for k in range(1, count + 1)]
+    lines = ["v 0 0 0"] + [f"v {math.cos(a):.6f} {math.sin(a):.6f} {0.3 * math.sin(3 * a):.6f}" for a in angles]
+    lines += [f"f 1 {k + 3} {k + 2}" for k in range(count)]  # facing down, towards the floor
+    (tmp_path / "fan.obj").write_text("\n".join(lines) + "\n")
+    light = {"type": "obj", "filename": str(tmp_path / "fan.obj"),
+             "to_world": tr.Transform.translate([0, 0, 1.5]) @ tr.Transform.scale(0.8)}
+    test02_area_light_sampling_matches_bsdf_sampling(light)
 
 
 def test03_keys_and_read_only_geometry():
