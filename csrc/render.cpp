@@ -194,7 +194,7 @@ private:
     }
     template <typename T>
     static void value_of(const Dual<T> &L, double *l) {
-        for (int c = 0; c < 3; ++c) l[c] = double(L.v[c]);
+        value_of(L.v, l);
     }
 
     const Camera &camera_;

@@ -93,7 +93,7 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
         si.p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
         si.n = tri.n;
         if (shape.has_normals) {
-            ns = normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b1 + normals[tri.v[2]] * b2);
+            ns = vertex_normal(tri, b0, b1, b2);
         } else {
             ns = si.n;
         }
@@ -143,13 +143,18 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
     return si;
 }
 
+/// A density uniform in area over a shape of area `area`, converted to solid angle at a point
+/// dist2 away whose direction makes |cos| = abs_cos with the surface: dist^2 / (area |cos|).
+static float area_to_solid_angle(float area, float dist2, float abs_cos) {
+    return abs_cos > 0.f ? dist2 / (area * abs_cos) : 0.f;
+}
+
 /// Solid-angle density at `ref` of sampling uniformly by area a shape of area `area` at point
-/// `p` with normal `n`: dist^2 / (area |cos|).
+/// `p` with normal `n`.
 static float solid_angle_pdf(float area, const Vec3 &ref, const Vec3 &p, const Vec3 &n) {
     Vec3 d = p - ref;
     float dist2 = squared_norm(d);
-    float cos = std::abs(dot(n, d)) / std::sqrt(dist2);
-    return cos > 0.f ? dist2 / (area * cos) : 0.f;
+    return area_to_solid_angle(area, dist2, std::abs(dot(n, d)) / std::sqrt(dist2));
 }
 
 /// Squared radius beyond which a reference point counts as outside a sphere. Points on the
@@ -188,9 +193,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         float b0 = 1.f - b.x - b.y;
         const Vec3 &p0 = positions[tri.v[0]], &p1 = positions[tri.v[1]], &p2 = positions[tri.v[2]];
         ds.p = p0 * b0 + p1 * b.x + p2 * b.y;
-        ds.n = shape.has_normals ? normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b.x +
-                                             normals[tri.v[2]] * b.y)
-                                 : tri.n;
+        ds.n = shape.has_normals ? vertex_normal(tri, b0, b.x, b.y) : tri.n;
         if (shape.flip_normals) ds.n = -ds.n;
         n_area = tri.n;
     } else if (shape.kind == ShapeKind::Disk || shape.kind == ShapeKind::Cylinder) {
@@ -244,8 +247,8 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         }
         if (shape.flip_normals) ds.n = -ds.n;
     }
-    // The direction, and the density of points sampled by area converted to solid angle:
-    // dist^2 / (area |cos|), sharing the distance.
+    // The direction, and the density of points sampled by area converted to solid angle,
+    // sharing the distance.
     Vec3 d = ds.p - ref;
     float dist2 = squared_norm(d);
     ds.dist = std::sqrt(dist2);
@@ -254,10 +257,7 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         return ds;
     }
     ds.d = d * (1.f / ds.dist);
-    if (by_area) {
-        float cos = std::abs(dot(n_area, ds.d));
-        ds.pdf = cos > 0.f ? dist2 / (shape.area * cos) : 0.f;
-    }
+    if (by_area) ds.pdf = area_to_solid_angle(shape.area, dist2, std::abs(dot(n_area, ds.d)));
     return ds;
 }
 

@@ -303,6 +303,11 @@ struct Geometry {
     float pdf_direction(int shape, const Vec3 &ref, const Vec3 &p, const Vec3 &n) const;
     /// Finish building: areas and sampling CDFs. Call once after all shapes are added.
     void prepare();
+
+    /// The vertex normals of `tri` interpolated at barycentrics (b0, b1, b2), normalised.
+    Vec3 vertex_normal(const Triangle &tri, float b0, float b1, float b2) const {
+        return normalize(normals[tri.v[0]] * b0 + normals[tri.v[1]] * b1 + normals[tri.v[2]] * b2);
+    }
 };
 
 }  // namespace rbpt
