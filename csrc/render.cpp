@@ -10,13 +10,15 @@ namespace {
 /// window's corner whatever rows a render asks for, so a band of rows sums every pixel's
 /// splats in the same order as the whole image does.
 struct Tiles {
-    int size = 16;   ///< edge in pixels, at least twice the filter border
+    int size = 16;  ///< edge in pixels
     int nx = 0, ny = 0;
+    /// Tile (tx, ty)'s number, its place in the order in which tiles' borders are merged.
+    int index(int tx, int ty) const { return ty * nx + tx; }
 };
 
 Tiles tiles_of(const Camera &camera) {
     Tiles t;
-    t.size = std::max(16, 2 * camera.filter.border());
+    t.size = std::max(16, 2 * camera.filter.border());  // borders at most half the tile
     t.nx = (camera.crop_width + t.size - 1) / t.size;
     t.ny = (camera.crop_height + t.size - 1) / t.size;
     return t;
@@ -38,26 +40,19 @@ RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
     return {std::max(0, out.begin - b), std::min(camera.crop_height, out.end + b)};
 }
 
-/// Run tile(tx, ty) for every tile meeting rows [rows.begin, rows.end) of the crop window, in
-/// four phases by the parity of (tx, ty). Within a phase no two tiles' splats reach the same
-/// pixel (tiles are at least two borders wide), so tiles of a phase run in parallel without
-/// locks, and every pixel receives its splats in the same order for any number of threads.
+/// Run tile(tx, ty) for every tile meeting rows [rows.begin, rows.end) of the crop window, on
+/// all of the pool's workers, each taking the next tile when it is done with one. Tiles
+/// splat into private buffers (Film::Block), so the order they run in changes no sum.
 template <typename F>
-void for_each_tile_phased(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
+void for_each_tile(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
     int ty_begin = rows.begin / tiles.size, ty_end = (rows.end + tiles.size - 1) / tiles.size;
-    for (int phase = 0; phase < 4; ++phase) {
-        int ox = phase & 1, oy = phase >> 1;
-        int nx = (tiles.nx - ox + 1) / 2;
-        int ty0 = ty_begin + ((ty_begin & 1) != oy);  // first tile row of this parity
-        int ny = ty0 < ty_end ? (ty_end - ty0 + 1) / 2 : 0;
-        int64_t n = int64_t(nx) * ny;
-        if (n == 0) continue;
-        std::atomic<int64_t> next{0};
-        pool.run([&] {
-            for (int64_t k = next++; k < n; k = next++)
-                tile(ox + 2 * int(k % nx), ty0 + 2 * int(k / nx));
-        });
-    }
+    int64_t n = int64_t(tiles.nx) * std::max(0, ty_end - ty_begin);
+    if (n == 0) return;
+    std::atomic<int64_t> next{0};
+    pool.run([&] {
+        for (int64_t k = next++; k < n; k = next++)
+            tile(int(k % tiles.nx), ty_begin + int(k / tiles.nx));
+    });
 }
 
 /// Pixels of tile (tx, ty) within `rows`, in film coordinates: f(px, py, key) for each.
@@ -104,14 +99,121 @@ struct alignas(32) PixelSum {
     double weight = 0.0;
 };
 
+/// A rectangle [x0, x1) x [y0, y1) of the crop window.
+struct Rect {
+    int x0 = 0, y0 = 0, x1 = 0, y1 = 0;
+    bool contains(int x, int y) const { return x >= x0 && x < x1 && y >= y0 && y < y1; }
+    int width() const { return x1 - x0; }
+    size_t area() const { return x1 > x0 && y1 > y0 ? size_t(x1 - x0) * size_t(y1 - y0) : 0; }
+};
+
 /// The film of one render: a PixelSum per pixel of the requested rows, and the weighted sums
-/// of the samples' tangents when it splats dual numbers.
+/// of the samples' tangents when it splats dual numbers. A tile splats its samples into a
+/// Block of its own, covering the tile and the border its splats reach; commit() moves the
+/// tile's own pixels into the film and keeps the border, which merge_borders() adds once all
+/// tiles are in, in tile order. Every pixel is thus its own tile's sum plus its neighbours'
+/// borders in a fixed order, whatever order the threads ran the tiles in.
 class Film {
 public:
-    /// A film over `rows`; with `tangents`, it also sums the tangents of dual-number samples.
-    Film(const Camera &camera, RowRange rows, bool tangents = false)
-        : camera_(camera), rows_(rows), sums_(size_t(rows.end - rows.begin) * camera.crop_width),
-          tangents_(tangents ? sums_.size() : 0) {}
+    /// Pixel sums over a rectangle of the crop window.
+    struct Block {
+        Rect rect;
+        std::vector<PixelSum> sums;
+        std::vector<RGB<double>> tangents;  ///< empty unless the film sums tangents
+        size_t index(int x, int y) const { return size_t(y - rect.y0) * rect.width() + size_t(x - rect.x0); }
+    };
+
+    /// A film over `rows`, splatted tile by tile; with `tangents`, it also sums the tangents of
+    /// dual-number samples.
+    Film(const Camera &camera, const Tiles &tiles, RowRange rows, bool tangents = false)
+        : camera_(camera), tiles_(tiles), rows_(rows), tangents_(tangents),
+          borders_(size_t(tiles.nx) * size_t(tiles.ny)) {
+        image_.rect = {0, rows.begin, camera.crop_width, rows.end};
+        image_.sums.resize(image_.rect.area());
+        if (tangents) image_.tangents.resize(image_.sums.size());
+    }
+
+    /// A zeroed block for the samples of tile (tx, ty).
+    Block block(int tx, int ty) const {
+        Block block;
+        block.rect = block_rect(tx, ty);
+        block.sums.resize(block.rect.area());
+        if (tangents_) block.tangents.resize(block.sums.size());
+        return block;
+    }
+
+    /// Splat a sample taken in pixel (px, py) of tile (tx, ty) at `pos` (film coordinates) into
+    /// that tile's block; with L null, only its weights (for the backward pass's
+    /// normalisation). The sums are those of for_each_reached: the pixels it skips get zero
+    /// weights here, which add nothing.
+    template <typename S>
+    void splat(Block &block, int px, int py, Vec2 pos, const S *L) const {
+        Footprint fp = footprint(px, py, pos);
+        double l[4] = {0.0, 0.0, 0.0, 1.0};
+        if (L) value_of(*L, l);
+        for (int j = fp.j0; j <= fp.j1; ++j) {
+            if (fp.wy[j + fp.b] == 0.f) continue;
+            size_t row = block.index(fp.x, fp.y + j);
+            PixelSum *sum = &block.sums[row];
+            double wyj = fp.wy[j + fp.b];
+            for (int i = fp.i0; i <= fp.i1; ++i) {
+                double w = double(fp.wx[i + fp.b]) * wyj;
+                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
+                sum[i].weight += w;
+            }
+            if constexpr (IsDual<S>::value) {
+                if (!L || block.tangents.empty()) continue;
+                for (int i = fp.i0; i <= fp.i1; ++i) {
+                    double w = double(fp.wx[i + fp.b]) * wyj;
+                    for (int c = 0; c < 3; ++c) block.tangents[row + i][c] += w * double(L->d[c]);
+                }
+            }
+        }
+    }
+
+    /// Move tile (tx, ty)'s block into the film: its own pixels now, its border for
+    /// merge_borders(). Distinct tiles may commit concurrently.
+    void commit(int tx, int ty, Block &&block) {
+        Rect own = own_rect(tx, ty);
+        Border &border = borders_[tiles_.index(tx, ty)];
+        border.sums.reserve(block.sums.size() - own.area());
+        if (tangents_) border.tangents.reserve(border.sums.capacity());
+        for (int y = block.rect.y0; y < block.rect.y1; ++y) {
+            for (int x = block.rect.x0; x < block.rect.x1; ++x) {
+                size_t k = block.index(x, y);
+                if (own.contains(x, y)) {
+                    image_.sums[image_.index(x, y)] = block.sums[k];
+                    if (tangents_) image_.tangents[image_.index(x, y)] = block.tangents[k];
+                } else {
+                    border.sums.push_back(block.sums[k]);
+                    if (tangents_) border.tangents.push_back(block.tangents[k]);
+                }
+            }
+        }
+    }
+
+    /// Add the committed tiles' borders into the film, in tile order; once all are committed.
+    void merge_borders() {
+        for (int ty = 0; ty < tiles_.ny; ++ty) {
+            for (int tx = 0; tx < tiles_.nx; ++tx) {
+                Border &border = borders_[tiles_.index(tx, ty)];
+                if (border.sums.empty()) continue;
+                Rect rect = block_rect(tx, ty), own = own_rect(tx, ty);
+                size_t k = 0;
+                for (int y = rect.y0; y < rect.y1; ++y) {
+                    for (int x = rect.x0; x < rect.x1; ++x) {
+                        if (own.contains(x, y)) continue;
+                        PixelSum &sum = image_.sums[image_.index(x, y)];
+                        for (int c = 0; c < 3; ++c) sum.value[c] += border.sums[k].value[c];
+                        sum.weight += border.sums[k].weight;
+                        if (tangents_) image_.tangents[image_.index(x, y)] += border.tangents[k];
+                        ++k;
+                    }
+                }
+                border = Border();
+            }
+        }
+    }
 
     /// Call f(i, w) for each pixel i (row-major over the film's rows) that a sample taken in
     /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
@@ -120,7 +222,7 @@ public:
         Footprint fp = footprint(px, py, pos);
         for (int j = fp.j0; j <= fp.j1; ++j) {
             if (fp.wy[j + fp.b] == 0.f) continue;
-            size_t row = fp.row(j);
+            size_t row = image_.index(fp.x, fp.y + j);
             for (int i = fp.i0; i <= fp.i1; ++i) {
                 if (fp.wx[i + fp.b] == 0.f) continue;
                 f(row + i, double(fp.wx[i + fp.b]) * double(fp.wy[j + fp.b]));
@@ -128,50 +230,38 @@ public:
         }
     }
 
-    /// Splat a sample taken in pixel (px, py) at `pos` (film coordinates); with L null, only
-    /// its weights (for the backward pass's normalisation). The sums are those of
-    /// for_each_reached: the pixels it skips get zero weights here, which add nothing.
-    template <typename S>
-    void splat(int px, int py, Vec2 pos, const S *L) {
-        Footprint fp = footprint(px, py, pos);
-        double l[4] = {0.0, 0.0, 0.0, 1.0};
-        if (L) value_of(*L, l);
-        for (int j = fp.j0; j <= fp.j1; ++j) {
-            if (fp.wy[j + fp.b] == 0.f) continue;
-            size_t row = fp.row(j);
-            PixelSum *sum = &sums_[row];
-            double wyj = fp.wy[j + fp.b];
-            for (int i = fp.i0; i <= fp.i1; ++i) {
-                double w = double(fp.wx[i + fp.b]) * wyj;
-                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
-                sum[i].weight += w;
-            }
-            if constexpr (IsDual<S>::value) {
-                if (!L || tangents_.empty()) continue;
-                for (int i = fp.i0; i <= fp.i1; ++i) {
-                    double w = double(fp.wx[i + fp.b]) * wyj;
-                    for (int c = 0; c < 3; ++c) tangents_[row + i][c] += w * double(L->d[c]);
-                }
-            }
-        }
-    }
-
     /// Pixel i (row-major over the requested rows).
-    const PixelSum &operator[](size_t i) const { return sums_[i]; }
+    const PixelSum &operator[](size_t i) const { return image_.sums[i]; }
     /// The weighted sum of the tangents splatted into pixel i (a film with `tangents`).
-    const RGB<double> &tangent(size_t i) const { return tangents_[i]; }
-    size_t size() const { return sums_.size(); }
+    const RGB<double> &tangent(size_t i) const { return image_.tangents[i]; }
+    size_t size() const { return image_.sums.size(); }
 
 private:
+    /// A tile's sums for the pixels of its block outside the tile, in raster order.
+    struct Border {
+        std::vector<PixelSum> sums;
+        std::vector<RGB<double>> tangents;
+    };
+
+    /// Tile (tx, ty)'s own pixels within the film's rows.
+    Rect own_rect(int tx, int ty) const {
+        int x0 = tx * tiles_.size, y0 = ty * tiles_.size;
+        return {x0, std::max(rows_.begin, y0), std::min(camera_.crop_width, x0 + tiles_.size),
+                std::min(rows_.end, y0 + tiles_.size)};
+    }
+    /// The pixels within the film's rows that tile (tx, ty)'s samples reach.
+    Rect block_rect(int tx, int ty) const {
+        int b = camera_.filter.border(), x0 = tx * tiles_.size, y0 = ty * tiles_.size;
+        return {std::max(0, x0 - b), std::max(rows_.begin, y0 - b),
+                std::min(camera_.crop_width, x0 + tiles_.size + b), std::min(rows_.end, y0 + tiles_.size + b)};
+    }
+
     /// The filter weights of a sample and the window of pixels they cover, offsets
     /// [i0, i1] x [j0, j1] from the sample's pixel (x, y in the crop window), clipped to the
     /// film's columns and rows.
     struct Footprint {
         float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
         int b, x, y, i0, i1, j0, j1;
-        int row_begin, width;  ///< the film's first row and its width
-        /// Index of pixel (x, y + j); pixel (x + i, y + j) is this plus i.
-        size_t row(int j) const { return size_t(y + j - row_begin) * width + x; }
     };
     Footprint footprint(int px, int py, Vec2 pos) const {
         Footprint fp;
@@ -183,8 +273,6 @@ private:
         fp.i1 = std::min(fp.b, camera_.crop_width - 1 - fp.x);
         fp.j0 = std::max(-fp.b, rows_.begin - fp.y);
         fp.j1 = std::min(fp.b, rows_.end - 1 - fp.y);
-        fp.row_begin = rows_.begin;
-        fp.width = camera_.crop_width;
         return fp;
     }
 
@@ -198,20 +286,22 @@ private:
     }
 
     const Camera &camera_;
+    Tiles tiles_;
     RowRange rows_;
-    std::vector<PixelSum> sums_;
-    std::vector<RGB<double>> tangents_;  ///< empty unless constructed with `tangents`
+    bool tangents_;
+    Block image_;
+    std::vector<Border> borders_;  ///< per tile (Tiles::index), until merge_borders()
 };
 
 /// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
 /// splats reach them) and splat them into `film`.
 template <typename S>
 void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
-                   const RenderRequest &req, const WorkerPool &pool, Film &film) {
-    Tiles tiles = tiles_of(camera);
+                   const RenderRequest &req, const Tiles &tiles, const WorkerPool &pool, Film &film) {
     std::atomic<uint64_t> rays{0}, nonfinite{0};
-    for_each_tile_phased(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
+    for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
         uint64_t rays_before = rays_traced, dropped = 0;
+        Film::Block block = film.block(tx, ty);
         for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
                                [&](int px, int py, uint64_t key) {
             for (int s = 0; s < req.spp; ++s) {
@@ -223,12 +313,14 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
                     ++dropped;
                     continue;
                 }
-                film.splat(px, py, pos, &L);
+                film.splat(block, px, py, pos, &L);
             }
         });
+        film.commit(tx, ty, std::move(block));
         rays += rays_traced - rays_before;
         nonfinite += dropped;
     });
+    film.merge_borders();
     if (req.rays) *req.rays = rays;
     if (req.nonfinite) *req.nonfinite = nonfinite;
 }
@@ -242,8 +334,9 @@ double safe_div(double a, double b) { return b != 0.0 ? a / b : 0.0; }
 template <typename S>
 void render_fwd(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
                 const RenderRequest &req, real_t<S> *out, const WorkerPool &pool) {
-    Film film(camera, requested_rows(camera, req));
-    splat_samples(ctx, camera, cfg, req, pool, film);
+    Tiles tiles = tiles_of(camera);
+    Film film(camera, tiles, requested_rows(camera, req));
+    splat_samples(ctx, camera, cfg, req, tiles, pool, film);
     for (size_t i = 0; i < film.size(); ++i)
         for (int c = 0; c < 3; ++c) out[3 * i + c] = real_t<S>(safe_div(film[i].value[c], film[i].weight));
 }
@@ -252,8 +345,9 @@ template <typename T>
 void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, T *out, T *out_tangent,
                 const WorkerPool &pool) {
-    Film film(camera, requested_rows(camera, req), /*tangents=*/true);
-    splat_samples(ctx, camera, cfg, req, pool, film);
+    Tiles tiles = tiles_of(camera);
+    Film film(camera, tiles, requested_rows(camera, req), /*tangents=*/true);
+    splat_samples(ctx, camera, cfg, req, tiles, pool, film);
     for (size_t i = 0; i < film.size(); ++i) {
         for (int c = 0; c < 3; ++c) {
             out[3 * i + c] = T(safe_div(film[i].value[c], film[i].weight));
@@ -271,15 +365,18 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     // the weight sum of the backward pass's own samples (their positions cost no tracing).
     RowRange all{0, camera.crop_height};
     Tiles tiles = tiles_of(camera);
-    Film weights(camera, all);
-    for_each_tile_phased(tiles, all, pool, [&](int tx, int ty) {
+    Film weights(camera, tiles, all);
+    for_each_tile(tiles, all, pool, [&](int tx, int ty) {
+        Film::Block block = weights.block(tx, ty);
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
             for (int s = 0; s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
-                weights.splat<RGB<T>>(px, py, camera.sample_position(px, py, sampler), nullptr);
+                weights.splat<RGB<T>>(block, px, py, camera.sample_position(px, py, sampler), nullptr);
             }
         });
+        weights.commit(tx, ty, std::move(block));
     });
+    weights.merge_borders();
     size_t n_pixels = weights.size();
     std::vector<RGB<double>> scaled(n_pixels);  // adjoint_p / W_p
     for (size_t i = 0; i < n_pixels; ++i)
