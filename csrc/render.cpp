@@ -413,25 +413,27 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         for (size_t p = 0; p < n_params; ++p)
             if (grads[p]) params.grad[p] = buffer.data() + offset[p];
         RenderContext<Var<T>> ctx(scene, params);
-        // Static, interleaved tiles: worker w always sums the same paths in the same order,
-        // so gradients are bitwise reproducible for a given number of workers.
-        for (int tile = w; tile < n_tiles; tile += n_workers) {
+        // Static, interleaved units of work, a unit being one sample index s in every pixel
+        // of a tile: worker w always sums the same paths in the same order, so gradients are
+        // bitwise reproducible for a given number of workers, and each tile's paths are
+        // shared among the workers (whose loads stay even when some tiles cost more).
+        int64_t n_units = int64_t(n_tiles) * req.spp;
+        for (int64_t unit = w; unit < n_units; unit += n_workers) {
+            int tile = int(unit / req.spp), s = int(unit % req.spp);
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t key) {
-                for (int s = 0; s < req.spp; ++s) {
-                    Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
-                    Vec2 pos = camera.sample_position(px, py, sampler);
-                    RGB<T> dL = gather(px, py, pos);
-                    if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) continue;
-                    // Re-trace the path recording only what depends on differentiated
-                    // parameters, then push the sample's adjoint back along it.
-                    tape_reset<T>();
-                    Var<T> L = trace(ctx, camera, cfg, pos, sampler);
-                    if (SpectrumTraits<Var<T>>::is_finite(L)) {
-                        L.backward(dL);
-                    } else {
-                        ++dropped;
-                    }
+                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
+                Vec2 pos = camera.sample_position(px, py, sampler);
+                RGB<T> dL = gather(px, py, pos);
+                if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
+                // Re-trace the path recording only what depends on differentiated
+                // parameters, then push the sample's adjoint back along it.
+                tape_reset<T>();
+                Var<T> L = trace(ctx, camera, cfg, pos, sampler);
+                if (SpectrumTraits<Var<T>>::is_finite(L)) {
+                    L.backward(dL);
+                } else {
+                    ++dropped;
                 }
             });
         }
