@@ -78,11 +78,13 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
     bool prev_delta = true;
     Vec3 prev_p;
     for (int depth = 0;; ++depth) {
-        // Find the next surface along the ray.
-        SurfaceInteraction si = scene.intersect(ray);
+        // Find the next surface along the ray; at the last vertex max_depth allows, only an
+        // emitter's (the interaction is completed for emitters only).
+        bool last = cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth;
+        SurfaceInteraction si;
+        int emitter = last ? scene.intersect_emitter(ray, &si) : scene.emitter_at(si = scene.intersect(ray));
 
         // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
-        int emitter = scene.emitter_at(si);
         if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
             const Emitter &e = scene.emitters[emitter];
             float em_pdf = prev_delta ? 0.f : emitter_pdf(ctx, e, prev_p, si);
@@ -90,7 +92,7 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         }
 
         // Stop when the ray escaped or the next vertex would exceed max_depth.
-        if (!si.valid || (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth)) break;
+        if (!si.valid || last) break;
         int bsdf_index = scene.bsdf_at(si);
         const BSDF &bsdf = scene.bsdfs[bsdf_index];
 
@@ -169,8 +171,8 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
         auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
         if (!bs) continue;
         Ray next = si.spawn_ray(si.to_world(bs->wo));
-        SurfaceInteraction hit = scene.intersect(next);
-        int e = scene.emitter_at(hit);
+        SurfaceInteraction hit;
+        int e = scene.intersect_emitter(next, &hit);
         if (e < 0) continue;
         const Emitter &em = scene.emitters[e];
         float em_pdf = bs->delta ? 0.f : emitter_pdf(ctx, em, si.p, hit);

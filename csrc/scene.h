@@ -41,6 +41,16 @@ public:
         bvh.intersect(ray, &hit);
         return geometry.interaction(ray, hit);
     }
+    /// For a ray whose hit matters only as a light source: the emitter it finds (its surface's,
+    /// or the environment's when it escapes; -1 if none) and, only then, the interaction.
+    int intersect_emitter(const Ray &ray, SurfaceInteraction *si) const {
+        ++rays_traced;
+        Hit hit;
+        bvh.intersect(ray, &hit);
+        int emitter = hit.valid() ? geometry.shapes[geometry.shape_of(hit.prim)].emitter : environment;
+        if (emitter >= 0) *si = geometry.interaction(ray, hit);
+        return emitter;
+    }
     bool occluded(const Ray &ray) const {
         ++rays_traced;
         return bvh.occluded(ray);

@@ -293,6 +293,10 @@ struct Geometry {
     const Shape &analytic_shape(uint32_t prim) const {
         return shapes[analytic[prim - triangles.size()]];
     }
+    /// Index of the shape a primitive belongs to.
+    uint32_t shape_of(uint32_t prim) const {
+        return is_triangle(prim) ? triangles[prim].shape : analytic[prim - triangles.size()];
+    }
 
     /// Complete a BVH hit into a surface interaction; uv only where the shape needs_uv, or
     /// everywhere with `all_uv`.
