@@ -1,6 +1,8 @@
 #include "render.h"
 
 #include <atomic>
+#include <cassert>
+#include <mutex>
 
 namespace rbpt {
 
@@ -34,10 +36,14 @@ RowRange requested_rows(const Camera &camera, const RenderRequest &req) {
     return {req.row_begin, req.row_end < 0 ? camera.crop_height : req.row_end};
 }
 
-RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
-    RowRange out = requested_rows(camera, req);
+/// The rows whose samples reach `rows`: widened by the filter border, clipped to the window.
+RowRange rows_reaching(const Camera &camera, RowRange rows) {
     int b = camera.filter.border();
-    return {std::max(0, out.begin - b), std::min(camera.crop_height, out.end + b)};
+    return {std::max(0, rows.begin - b), std::min(camera.crop_height, rows.end + b)};
+}
+
+RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
+    return rows_reaching(camera, requested_rows(camera, req));
 }
 
 /// Run tile(tx, ty) for every tile meeting rows [rows.begin, rows.end) of the crop window, on
@@ -109,10 +115,12 @@ struct Rect {
 
 /// The film of one render: a PixelSum per pixel of the requested rows, and the weighted sums
 /// of the samples' tangents when it splats dual numbers. A tile splats its samples into a
-/// Block of its own, covering the tile and the border its splats reach; commit() moves the
-/// tile's own pixels into the film and keeps the border, which merge_borders() adds once all
-/// tiles are in, in tile order. Every pixel is thus its own tile's sum plus its neighbours'
-/// borders in a fixed order, whatever order the threads ran the tiles in.
+/// Block of its own, covering the tile and the border its splats reach (its neighbours'
+/// pixels: a border is at most half a tile). commit() moves the tile's own pixels into the
+/// film and keeps the border until its turn: borders are added in tile order, each once the
+/// tiles whose pixels it covers are committed. Every pixel is thus its own tile's sum plus
+/// its neighbours' borders in a fixed order, whatever order the threads ran the tiles in, and
+/// only the borders of about a row of tiles wait at any time.
 class Film {
 public:
     /// Pixel sums over a rectangle of the crop window.
@@ -127,10 +135,15 @@ public:
     /// dual-number samples.
     Film(const Camera &camera, const Tiles &tiles, RowRange rows, bool tangents = false)
         : camera_(camera), tiles_(tiles), rows_(rows), tangents_(tangents),
-          borders_(size_t(tiles.nx) * size_t(tiles.ny)) {
+          borders_(size_t(tiles.nx) * size_t(tiles.ny)), committed_(borders_.size(), 0) {
         image_.rect = {0, rows.begin, camera.crop_width, rows.end};
         image_.sums.resize(image_.rect.area());
         if (tangents) image_.tangents.resize(image_.sums.size());
+        // The tiles whose samples reach these rows (for_each_tile's over sample_rows).
+        RowRange reaching = rows_reaching(camera, rows);
+        ty_begin_ = reaching.begin / tiles.size;
+        ty_end_ = std::max(ty_begin_, (reaching.end + tiles.size - 1) / tiles.size);
+        next_border_ = tiles.index(0, ty_begin_);
     }
 
     /// A zeroed block for the samples of tile (tx, ty).
@@ -171,8 +184,8 @@ public:
         }
     }
 
-    /// Move tile (tx, ty)'s block into the film: its own pixels now, its border for
-    /// merge_borders(). Distinct tiles may commit concurrently.
+    /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
+    /// comes (see the class). Distinct tiles may commit concurrently.
     void commit(int tx, int ty, Block &&block) {
         Rect own = own_rect(tx, ty);
         Border &border = borders_[tiles_.index(tx, ty)];
@@ -190,30 +203,16 @@ public:
                 }
             }
         }
+        // Add the borders whose turn has come: the next in tile order, while the tiles its
+        // block covers are all committed.
+        std::lock_guard<std::mutex> lock(merge_mutex_);
+        committed_[tiles_.index(tx, ty)] = 1;
+        int end = tiles_.index(0, ty_end_);
+        while (next_border_ < end && neighbours_committed(next_border_)) merge_border(next_border_++);
     }
 
-    /// Add the committed tiles' borders into the film, in tile order; once all are committed.
-    void merge_borders() {
-        for (int ty = 0; ty < tiles_.ny; ++ty) {
-            for (int tx = 0; tx < tiles_.nx; ++tx) {
-                Border &border = borders_[tiles_.index(tx, ty)];
-                if (border.sums.empty()) continue;
-                Rect rect = block_rect(tx, ty), own = own_rect(tx, ty);
-                size_t k = 0;
-                for (int y = rect.y0; y < rect.y1; ++y) {
-                    for (int x = rect.x0; x < rect.x1; ++x) {
-                        if (own.contains(x, y)) continue;
-                        PixelSum &sum = image_.sums[image_.index(x, y)];
-                        for (int c = 0; c < 3; ++c) sum.value[c] += border.sums[k].value[c];
-                        sum.weight += border.sums[k].weight;
-                        if (tangents_) image_.tangents[image_.index(x, y)] += border.tangents[k];
-                        ++k;
-                    }
-                }
-                border = Border();
-            }
-        }
-    }
+    /// Whether every tile's border has been added (all tiles committed).
+    bool complete() const { return next_border_ == tiles_.index(0, ty_end_); }
 
     /// Call f(i, w) for each pixel i (row-major over the film's rows) that a sample taken in
     /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
@@ -242,6 +241,34 @@ private:
         std::vector<PixelSum> sums;
         std::vector<RGB<double>> tangents;
     };
+
+    /// Whether tile k and those around it (whose pixels its block covers) are committed.
+    bool neighbours_committed(int k) const {
+        int tx = k % tiles_.nx, ty = k / tiles_.nx;
+        for (int y = std::max(ty_begin_, ty - 1); y <= std::min(ty_end_ - 1, ty + 1); ++y)
+            for (int x = std::max(0, tx - 1); x <= std::min(tiles_.nx - 1, tx + 1); ++x)
+                if (!committed_[tiles_.index(x, y)]) return false;
+        return true;
+    }
+
+    /// Add tile k's border into the film and free it.
+    void merge_border(int k) {
+        Border &border = borders_[k];
+        int tx = k % tiles_.nx, ty = k / tiles_.nx;
+        Rect rect = block_rect(tx, ty), own = own_rect(tx, ty);
+        size_t i = 0;
+        for (int y = rect.y0; y < rect.y1; ++y) {
+            for (int x = rect.x0; x < rect.x1; ++x) {
+                if (own.contains(x, y)) continue;
+                PixelSum &sum = image_.sums[image_.index(x, y)];
+                for (int c = 0; c < 3; ++c) sum.value[c] += border.sums[i].value[c];
+                sum.weight += border.sums[i].weight;
+                if (tangents_) image_.tangents[image_.index(x, y)] += border.tangents[i];
+                ++i;
+            }
+        }
+        border = Border();
+    }
 
     /// Tile (tx, ty)'s own pixels within the film's rows.
     Rect own_rect(int tx, int ty) const {
@@ -290,7 +317,11 @@ private:
     RowRange rows_;
     bool tangents_;
     Block image_;
-    std::vector<Border> borders_;  ///< per tile (Tiles::index), until merge_borders()
+    std::vector<Border> borders_;  ///< per tile (Tiles::index), until its turn to be added
+    int ty_begin_ = 0, ty_end_ = 0;  ///< the rows of tiles a render runs
+    std::mutex merge_mutex_;         ///< guards the three below
+    std::vector<char> committed_;    ///< per tile
+    int next_border_ = 0;            ///< the next tile whose border is to be added
 };
 
 /// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
@@ -320,7 +351,7 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
         rays += rays_traced - rays_before;
         nonfinite += dropped;
     });
-    film.merge_borders();
+    assert(film.complete());
     if (req.rays) *req.rays = rays;
     if (req.nonfinite) *req.nonfinite = nonfinite;
 }
@@ -376,7 +407,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         });
         weights.commit(tx, ty, std::move(block));
     });
-    weights.merge_borders();
+    assert(weights.complete());
     size_t n_pixels = weights.size();
     std::vector<RGB<double>> scaled(n_pixels);  // adjoint_p / W_p
     for (size_t i = 0; i < n_pixels; ++i)
