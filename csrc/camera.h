@@ -81,13 +81,14 @@ struct Camera {
         // Perspective: through the pinhole at the origin.
         float sx = 1.f - 2.f * (pos.x / float(film_width));
         float sy = 1.f - 2.f * (pos.y / float(film_height));
-        Vec3 d_local = normalize(Vec3{sx * tan_half_x, sy * tan_half_y, 1.f});
+        // The local direction (x, y, 1), normalised once it is in world space (the axes need
+        // not be orthogonal); the clip planes are at local z = near_clip and far_clip.
+        float x = sx * tan_half_x, y = sy * tan_half_y, len = std::sqrt(x * x + y * y + 1.f);
         Ray ray;
         ray.o = origin;
-        ray.d = normalize(axis_x * d_local.x + axis_y * d_local.y + axis_z * d_local.z);
-        float inv_z = 1.f / d_local.z;
-        ray.tmin = near_clip * inv_z;
-        ray.tmax = far_clip * inv_z;
+        ray.d = normalize(axis_x * x + axis_y * y + axis_z);
+        ray.tmin = near_clip * len;
+        ray.tmax = far_clip * len;
         return ray;
     }
 
