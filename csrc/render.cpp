@@ -335,8 +335,9 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
         Film::Block block = film.block(tx, ty);
         for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
                                [&](int px, int py, uint64_t key) {
+            PixelSeed seed(req.seed, key);
             for (int s = 0; s < req.spp; ++s) {
-                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
+                Sampler sampler(camera.sampler, seed, uint64_t(s));
                 Vec2 pos = camera.sample_position(px, py, sampler);
                 S L = trace(ctx, camera, cfg, pos, sampler);
                 // Drop a non-finite sample rather than poisoning its pixels, and count it.

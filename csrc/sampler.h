@@ -147,27 +147,34 @@ struct SamplerDesc {
 /// 2014) is the `independent` sampler and the jitter of the stratified kinds; the stratified
 /// kinds (dispatched by a switch, no virtual call) advance a dimension counter with every
 /// next_1d / next_2d, as Mitsuba's samplers do.
+/// What the samples of one pixel share, hashed from (seed, pixel) once per pixel: the key of
+/// their random streams and the permutation seed of the stratified samplers' patterns.
+struct PixelSeed {
+    uint64_t stream;
+    uint32_t sequence;
+    PixelSeed(uint64_t seed, uint64_t pixel) {
+        stream = mix64(mix64(seed) ^ pixel);
+        // One permutation seed per pixel (Mitsuba's per-sequence seed); dimensions offset it.
+        uint64_t key = mix64(mix64(seed ^ 0x6A09E667F3BCC909ull) ^ pixel);
+        sequence = uint32_t(key ^ (key >> 32));
+    }
+};
+
 class Sampler {
 public:
     /// The independent sampler.
-    Sampler(uint64_t seed, uint64_t pixel, uint64_t sample) {
-        uint64_t key = mix64(mix64(seed) ^ pixel);
-        inc_ = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u;
-        state_ = 0;
-        next_u32();
-        state_ += mix64(key + sample);
-        next_u32();
-    }
+    Sampler(uint64_t seed, uint64_t pixel, uint64_t sample) : Sampler(PixelSeed(seed, pixel).stream, sample) {}
 
     /// Sample `sample` (< desc.sample_count) of pixel `pixel` with the sampler `desc`.
     Sampler(const SamplerDesc &desc, uint64_t seed, uint64_t pixel, uint64_t sample)
-        : Sampler(seed, pixel, sample) {
+        : Sampler(desc, PixelSeed(seed, pixel), sample) {}
+
+    /// Sample `sample` of the pixel `pixel` seeds, with the sampler `desc`.
+    Sampler(const SamplerDesc &desc, const PixelSeed &pixel, uint64_t sample) : Sampler(pixel.stream, sample) {
         type_ = desc.type;
         desc_ = &desc;
         if (type_ == SamplerType::Independent) return;
-        // One permutation seed per pixel (Mitsuba's per-sequence seed); dimensions offset it.
-        uint64_t key = mix64(mix64(seed ^ 0x6A09E667F3BCC909ull) ^ pixel);
-        seq_ = uint32_t(key ^ (key >> 32));
+        seq_ = pixel.sequence;
         index_ = uint32_t(sample);
         if (type_ == SamplerType::Orthogonal) {
             // The sample's row of the orthogonal array, the same in every dimension.
@@ -210,6 +217,15 @@ public:
 
 private:
     static constexpr float OneMinusEpsilon = 0x1.fffffep-1f;
+
+    /// The PCG32 stream of sample `sample` of the pixel whose stream key is `key`.
+    Sampler(uint64_t key, uint64_t sample) {
+        inc_ = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u;
+        state_ = 0;
+        next_u32();
+        state_ += mix64(key + sample);
+        next_u32();
+    }
 
     float jitter() { return desc_->jitter ? uniform() : 0.5f; }
 
