@@ -401,8 +401,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     for_each_tile(tiles, all, pool, [&](int tx, int ty) {
         Film::Block block = weights.block(tx, ty);
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
+            PixelSeed seed(req.seed, key);
             for (int s = 0; s < req.spp; ++s) {
-                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
+                Sampler sampler(camera.sampler, seed, uint64_t(s));
                 weights.splat<RGB<T>>(block, px, py, camera.sample_position(px, py, sampler), nullptr);
             }
         });
