@@ -81,8 +81,9 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         // Find the next surface along the ray; at the last vertex max_depth allows, only an
         // emitter's (the interaction is completed for emitters only).
         bool last = cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth;
-        SurfaceInteraction si;
-        int emitter = last ? scene.intersect_emitter(ray, &si) : scene.emitter_at(si = scene.intersect(ray));
+        int emitter;
+        SurfaceInteraction si = last ? scene.intersect_emitter(ray, &emitter) : scene.intersect(ray);
+        if (!last) emitter = scene.emitter_at(si);
 
         // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
         if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
@@ -171,8 +172,8 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
         auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
         if (!bs) continue;
         Ray next = si.spawn_ray(si.to_world(bs->wo));
-        SurfaceInteraction hit;
-        int e = scene.intersect_emitter(next, &hit);
+        int e;
+        SurfaceInteraction hit = scene.intersect_emitter(next, &e);
         if (e < 0) continue;
         const Emitter &em = scene.emitters[e];
         float em_pdf = bs->delta ? 0.f : emitter_pdf(ctx, em, si.p, hit);

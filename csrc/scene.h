@@ -41,15 +41,17 @@ public:
         bvh.intersect(ray, &hit);
         return geometry.interaction(ray, hit);
     }
-    /// For a ray whose hit matters only as a light source: the emitter it finds (its surface's,
-    /// or the environment's when it escapes; -1 if none) and, only then, the interaction.
-    int intersect_emitter(const Ray &ray, SurfaceInteraction *si) const {
+    /// For a ray whose hit matters only as a light source: sets `emitter` to the emitter it
+    /// finds (its surface's, or the environment's when it escapes; -1 if none) and returns
+    /// the interaction only then (else an invalid one). Returned by value like intersect():
+    /// assigning a returned interaction to an existing one would copy it through the stack.
+    SurfaceInteraction intersect_emitter(const Ray &ray, int *emitter) const {
         ++rays_traced;
         Hit hit;
         bvh.intersect(ray, &hit);
-        int emitter = hit.valid() ? geometry.shapes[geometry.shape_of(hit.prim)].emitter : environment;
-        if (emitter >= 0) *si = geometry.interaction(ray, hit);
-        return emitter;
+        *emitter = hit.valid() ? geometry.shapes[geometry.shape_of(hit.prim)].emitter : environment;
+        if (*emitter < 0) return SurfaceInteraction();
+        return geometry.interaction(ray, hit);
     }
     bool occluded(const Ray &ray) const {
         ++rays_traced;
