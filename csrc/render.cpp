@@ -26,12 +26,18 @@ Tiles tiles_of(const Camera &camera) {
     return t;
 }
 
-/// Rows of the crop window whose samples a render traces: the requested rows widened by the
-/// filter border (their splats reach the requested rows), clipped to the window.
+/// A range [begin, end) of rows (of pixels, or of tiles).
 struct RowRange {
     int begin, end;
 };
 
+/// The rows of tiles that meet the pixel rows `rows`.
+RowRange tile_rows(const Tiles &tiles, RowRange rows) {
+    int begin = rows.begin / tiles.size;
+    return {begin, std::max(begin, (rows.end + tiles.size - 1) / tiles.size)};
+}
+
+/// The rows of the crop window a render asks for.
 RowRange requested_rows(const Camera &camera, const RenderRequest &req) {
     return {req.row_begin, req.row_end < 0 ? camera.crop_height : req.row_end};
 }
@@ -42,6 +48,8 @@ RowRange rows_reaching(const Camera &camera, RowRange rows) {
     return {std::max(0, rows.begin - b), std::min(camera.crop_height, rows.end + b)};
 }
 
+/// Rows of the crop window whose samples a render traces: the requested rows and those whose
+/// splats reach them.
 RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
     return rows_reaching(camera, requested_rows(camera, req));
 }
@@ -51,13 +59,13 @@ RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
 /// splat into private buffers (Film::Block), so the order they run in changes no sum.
 template <typename F>
 void for_each_tile(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
-    int ty_begin = rows.begin / tiles.size, ty_end = (rows.end + tiles.size - 1) / tiles.size;
-    int64_t n = int64_t(tiles.nx) * std::max(0, ty_end - ty_begin);
+    RowRange ty = tile_rows(tiles, rows);
+    int64_t n = int64_t(tiles.nx) * (ty.end - ty.begin);
     if (n == 0) return;
     std::atomic<int64_t> next{0};
     pool.run([&] {
         for (int64_t k = next++; k < n; k = next++)
-            tile(int(k % tiles.nx), ty_begin + int(k / tiles.nx));
+            tile(int(k % tiles.nx), ty.begin + int(k / tiles.nx));
     });
 }
 
@@ -139,10 +147,10 @@ public:
         image_.rect = {0, rows.begin, camera.crop_width, rows.end};
         image_.sums.resize(image_.rect.area());
         if (tangents) image_.tangents.resize(image_.sums.size());
-        // The tiles whose samples reach these rows (for_each_tile's over sample_rows).
-        RowRange reaching = rows_reaching(camera, rows);
-        ty_begin_ = reaching.begin / tiles.size;
-        ty_end_ = std::max(ty_begin_, (reaching.end + tiles.size - 1) / tiles.size);
+        // The tiles whose samples reach these rows (those for_each_tile runs over sample_rows).
+        RowRange ty = tile_rows(tiles, rows_reaching(camera, rows));
+        ty_begin_ = ty.begin;
+        ty_end_ = ty.end;
         next_border_ = tiles.index(0, ty_begin_);
     }
 
@@ -188,21 +196,19 @@ public:
     /// comes (see the class). Distinct tiles may commit concurrently.
     void commit(int tx, int ty, Block &&block) {
         Rect own = own_rect(tx, ty);
+        for (int y = own.y0; y < own.y1; ++y) {
+            for (int x = own.x0; x < own.x1; ++x) {
+                image_.sums[image_.index(x, y)] = block.sums[block.index(x, y)];
+                if (tangents_) image_.tangents[image_.index(x, y)] = block.tangents[block.index(x, y)];
+            }
+        }
         Border &border = borders_[tiles_.index(tx, ty)];
         border.sums.reserve(block.sums.size() - own.area());
         if (tangents_) border.tangents.reserve(border.sums.capacity());
-        for (int y = block.rect.y0; y < block.rect.y1; ++y) {
-            for (int x = block.rect.x0; x < block.rect.x1; ++x) {
-                size_t k = block.index(x, y);
-                if (own.contains(x, y)) {
-                    image_.sums[image_.index(x, y)] = block.sums[k];
-                    if (tangents_) image_.tangents[image_.index(x, y)] = block.tangents[k];
-                } else {
-                    border.sums.push_back(block.sums[k]);
-                    if (tangents_) border.tangents.push_back(block.tangents[k]);
-                }
-            }
-        }
+        for_each_border_pixel(tx, ty, [&](int x, int y) {
+            border.sums.push_back(block.sums[block.index(x, y)]);
+            if (tangents_) border.tangents.push_back(block.tangents[block.index(x, y)]);
+        });
         // Add the borders whose turn has come: the next in tile order, while the tiles its
         // block covers are all committed.
         std::lock_guard<std::mutex> lock(merge_mutex_);
@@ -251,22 +257,27 @@ private:
         return true;
     }
 
+    /// f(x, y) for each pixel of tile (tx, ty)'s block outside the tile itself, in raster
+    /// order: the order its Border stores them in.
+    template <typename F>
+    void for_each_border_pixel(int tx, int ty, F f) const {
+        Rect rect = block_rect(tx, ty), own = own_rect(tx, ty);
+        for (int y = rect.y0; y < rect.y1; ++y)
+            for (int x = rect.x0; x < rect.x1; ++x)
+                if (!own.contains(x, y)) f(x, y);
+    }
+
     /// Add tile k's border into the film and free it.
     void merge_border(int k) {
         Border &border = borders_[k];
-        int tx = k % tiles_.nx, ty = k / tiles_.nx;
-        Rect rect = block_rect(tx, ty), own = own_rect(tx, ty);
         size_t i = 0;
-        for (int y = rect.y0; y < rect.y1; ++y) {
-            for (int x = rect.x0; x < rect.x1; ++x) {
-                if (own.contains(x, y)) continue;
-                PixelSum &sum = image_.sums[image_.index(x, y)];
-                for (int c = 0; c < 3; ++c) sum.value[c] += border.sums[i].value[c];
-                sum.weight += border.sums[i].weight;
-                if (tangents_) image_.tangents[image_.index(x, y)] += border.tangents[i];
-                ++i;
-            }
-        }
+        for_each_border_pixel(k % tiles_.nx, k / tiles_.nx, [&](int x, int y) {
+            PixelSum &sum = image_.sums[image_.index(x, y)];
+            for (int c = 0; c < 3; ++c) sum.value[c] += border.sums[i].value[c];
+            sum.weight += border.sums[i].weight;
+            if (tangents_) image_.tangents[image_.index(x, y)] += border.tangents[i];
+            ++i;
+        });
         border = Border();
     }
 

@@ -143,10 +143,6 @@ struct SamplerDesc {
     }
 };
 
-/// The sample generator of one (seed, pixel, sample) triple. Its own PCG32 stream (O'Neill
-/// 2014) is the `independent` sampler and the jitter of the stratified kinds; the stratified
-/// kinds (dispatched by a switch, no virtual call) advance a dimension counter with every
-/// next_1d / next_2d, as Mitsuba's samplers do.
 /// What the samples of one pixel share, hashed from (seed, pixel) once per pixel: the key of
 /// their random streams and the permutation seed of the stratified samplers' patterns.
 struct PixelSeed {
@@ -160,6 +156,10 @@ struct PixelSeed {
     }
 };
 
+/// The sample generator of one (seed, pixel, sample) triple. Its own PCG32 stream (O'Neill
+/// 2014) is the `independent` sampler and the jitter of the stratified kinds; the stratified
+/// kinds (dispatched by a switch, no virtual call) advance a dimension counter with every
+/// next_1d / next_2d, as Mitsuba's samplers do.
 class Sampler {
 public:
     /// The independent sampler.

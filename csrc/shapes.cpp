@@ -79,11 +79,11 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
     if (!hit.valid()) return si;
     si.valid = true;
     si.t = hit.t;
+    si.shape = int(shape_of(hit.prim));
     Vec3 ns;
     if (is_triangle(hit.prim)) {
         const Triangle &tri = triangles[hit.prim];
         const Shape &shape = shapes[tri.shape];
-        si.shape = int(tri.shape);
         float b1 = hit.u, b2 = hit.v, b0 = 1.f - b1 - b2;
         si.tri = hit.prim;
         si.b1 = b1;
@@ -110,11 +110,9 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
             ns = -ns;
         }
     } else if (const Shape &shape = analytic_shape(hit.prim); shape.kind != ShapeKind::Sphere) {
-        si.shape = int(analytic[hit.prim - triangles.size()]);
         analytic_interaction(shape, ray, hit, shape.needs_uv || all_uv, &si);
         ns = si.n;
     } else {
-        si.shape = int(analytic[hit.prim - triangles.size()]);
         // Re-project the hit onto the sphere in double precision, so that p is the sphere's
         // point up to the final rounding (float arithmetic far from the origin is not).
         double r[3], len2 = 0.0;
