@@ -4,7 +4,11 @@
 
 namespace rbpt {
 
-float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
+namespace {
+
+/// fresnel_dielectric(), inline: roughplastic's quadratures call it in loops that the compiler
+/// vectorises.
+inline float fresnel(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
     bool outside = cos_i >= 0.f;
     float rcp_eta = 1.f / eta;
     *eta_it = outside ? eta : rcp_eta;
@@ -17,6 +21,12 @@ float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, fl
     float a_s = (ci - *eta_it * ct) / (ci + *eta_it * ct);
     float a_p = (ct - *eta_it * ci) / (ct + *eta_it * ci);
     return 0.5f * (a_s * a_s + a_p * a_p);
+}
+
+}  // namespace
+
+float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
+    return fresnel(cos_i, eta, cos_t, eta_it, eta_ti);
 }
 
 namespace {
@@ -44,6 +54,9 @@ void gauss_legendre(int n, std::vector<double> *nodes, std::vector<double> *weig
     }
 }
 
+template <MicrofacetType Type>
+using DistributionConstant = std::integral_constant<MicrofacetType, Type>;
+
 /// Energy a rough dielectric interface reflects (or transmits) for incidence wi, integrated
 /// over visible normals: sum of F G1(wo) (or (1 - F) G1(wt)) at quadrature points.
 float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float eta,
@@ -60,28 +73,82 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
     const std::vector<double> &weights = res == 32 ? rule32.second : rule128.second;
     // The sampler's parts along each axis of the grid, once per row and per column.
     VisibleNormalSampler sampler(type, alpha, wi);
-    Vec2 px[128], py[128];  // (res is 32 or 128)
+    // (res is 32 or 128; the columns' parts as two arrays, which vector loads read)
+    Vec2 px[128];
+    float py_x[128], py_y[128];
     for (int i = 0; i < res; ++i) {
         float u = float(0.5 * nodes[i] + 0.5);
         px[i] = sampler.part_x(u);
-        py[i] = sampler.part_y(u);
+        Vec2 py = sampler.part_y(u);
+        py_x[i] = py.x;
+        py_y[i] = py.y;
     }
-    double sum = 0.0;
-    for (int i = 0; i < res; ++i) {
-        for (int j = 0; j < res; ++j) {
-            Vec3 m = sampler.normal(px[i], py[j]);
-            float cos_t, eta_it, eta_ti;
-            float F = fresnel_dielectric(dot(wi, m), eta, &cos_t, &eta_it, &eta_ti);
-            float value;
-            if (transmit) {
-                Vec3 wt = m * (dot(wi, m) * eta_ti + cos_t) - wi * eta_ti;
-                value = (1.f - F) * smith_G1(type, alpha, wt, m);
-            } else {
-                Vec3 wo = reflect(wi, m);
-                value = wo.z > 0.f ? F * smith_G1(type, alpha, wo, m) : 0.f;
-            }
-            sum += value * weights[i] * weights[j];
+    // One point for distribution Type: the factor its G1 multiplies, F reflected (0 where the
+    // reflected direction is below the surface) or 1 - F transmitted, and that direction.
+    struct Point {
+        float weight;
+        Vec3 v, m;
+    };
+    auto point = [sampler, eta, wi](auto type_constant, auto transmit_constant, Vec2 px_i,
+                                    Vec2 py_j) {
+        constexpr MicrofacetType Type = decltype(type_constant)::value;
+        Vec3 m = sampler.normal<Type>(px_i, py_j);
+        float cos_t, eta_it, eta_ti;
+        float F = fresnel(dot(wi, m), eta, &cos_t, &eta_it, &eta_ti);
+        if constexpr (decltype(transmit_constant)::value) {
+            return Point{1.f - F, m * (dot(wi, m) * eta_ti + cos_t) - wi * eta_ti, m};
+        } else {
+            Vec3 wo = reflect(wi, m);
+            return Point{wo.z > 0.f ? F : 0.f, wo, m};
         }
+    };
+    // A row of points at a time, summed in order, in loops the compiler vectorises (the same
+    // operations, so the same results). GGX's G1 is plain arithmetic and joins its points'
+    // loop; Beckmann's calls libm's erf and exp, so it follows in a loop of its own, one
+    // point at a time. (Distribution and direction are template arguments: a loop-invariant
+    // branch inside a loop stops the vectoriser.)
+    double sum = 0.0;
+    auto rows = [&](auto type_constant, auto transmit_constant) {
+        constexpr MicrofacetType Type = decltype(type_constant)::value;
+        // What the loops read as locals, which their stores cannot change (the vectoriser
+        // then reads them once); no local of a loop's body has its address taken (that makes
+        // it an array per lane).
+        const float a = alpha;
+        const auto at = point;
+        auto value_at = [at, a, type_constant, transmit_constant](Vec2 px_i, Vec2 py_j) {
+            Point p = at(type_constant, transmit_constant, px_i, py_j);
+            return p.weight == 0.f ? 0.f : p.weight * smith_G1<Type>(a, p.v, p.m);
+        };
+        const float *ux = py_x, *uy = py_y;
+        float value[128], weight[128], vx[128], vy[128], vz[128], mx[128], my[128], mz[128];
+        for (int i = 0; i < res; ++i) {
+            const Vec2 px_i = px[i];
+            if constexpr (Type == MicrofacetType::GGX) {
+#pragma omp simd
+                for (int j = 0; j < res; ++j) value[j] = value_at(px_i, Vec2{ux[j], uy[j]});
+            } else {
+#pragma omp simd
+                for (int j = 0; j < res; ++j) {
+                    Point p = at(type_constant, transmit_constant, px_i, Vec2{ux[j], uy[j]});
+                    weight[j] = p.weight;
+                    vx[j] = p.v.x, vy[j] = p.v.y, vz[j] = p.v.z;
+                    mx[j] = p.m.x, my[j] = p.m.y, mz[j] = p.m.z;
+                }
+                for (int j = 0; j < res; ++j) {
+                    value[j] = weight[j] == 0.f ? 0.f
+                                                : weight[j] * smith_G1<Type>(a, Vec3{vx[j], vy[j], vz[j]},
+                                                                             Vec3{mx[j], my[j], mz[j]});
+                }
+            }
+            for (int j = 0; j < res; ++j) sum += value[j] * weights[i] * weights[j];
+        }
+    };
+    using GGX = DistributionConstant<MicrofacetType::GGX>;
+    using Beckmann = DistributionConstant<MicrofacetType::Beckmann>;
+    if (type == MicrofacetType::GGX) {
+        transmit ? rows(GGX(), std::true_type()) : rows(GGX(), std::false_type());
+    } else {
+        transmit ? rows(Beckmann(), std::true_type()) : rows(Beckmann(), std::false_type());
     }
     return float(sum * 0.25);
 }

@@ -56,8 +56,7 @@ VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, con
     cos_phi_ = sin_t > 0.f ? w_.x / sin_t : 1.f;
     sin_phi_ = sin_t > 0.f ? w_.y / sin_t : 0.f;
     float cos_i = w_.z;
-    polar_ = cos_i > 0.99999f;
-    if (polar_) return;
+    if (polar()) return;
     float sin_i = std::sqrt(std::max(0.f, 1.f - cos_i * cos_i));
     tan_i_ = sin_i / cos_i;
     float cot_i = 1.f / tan_i_;
@@ -72,7 +71,7 @@ VisibleNormalSampler::VisibleNormalSampler(MicrofacetType type, float alpha, con
 
 Vec2 VisibleNormalSampler::part_x(float u1) const {
     if (type_ == MicrofacetType::GGX) return {std::sqrt(u1), 0.f};
-    if (polar_) return {std::sqrt(-std::log(std::max(1.f - u1, 1e-30f))), 0.f};
+    if (polar()) return {std::sqrt(-std::log(std::max(1.f - u1, 1e-30f))), 0.f};
     // Search interval, parameterised in the erf() domain, and a good initial guess.
     float a = -1.f, c = erf_cot_;
     u1 = std::max(u1, 1e-6f);
@@ -93,25 +92,11 @@ Vec2 VisibleNormalSampler::part_x(float u1) const {
 }
 
 Vec2 VisibleNormalSampler::part_y(float u2) const {
-    if (type_ == MicrofacetType::GGX || polar_) {
+    if (type_ == MicrofacetType::GGX || polar()) {
         float phi = 2.f * Pi * u2;
         return {std::cos(phi), std::sin(phi)};
     }
     return {erfinv(2.f * u2 - 1.f), 0.f};
-}
-
-Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
-    if (type_ == MicrofacetType::GGX) {
-        float p1 = px.x * py.x, p2 = px.x * py.y;
-        p2 = (1.f - s_) * safe_sqrt(1.f - p1 * p1) + s_ * p2;
-        Vec3 nh = t1_ * p1 + t2_ * p2 + w_ * safe_sqrt(1.f - p1 * p1 - p2 * p2);
-        return normalize(Vec3{alpha_ * nh.x, alpha_ * nh.y, std::max(0.f, nh.z)});
-    }
-    // Slopes for alpha = 1, rotated to wi's azimuth and unstretched.
-    float sx = polar_ ? px.x * py.x : px.x, sy = polar_ ? px.x * py.y : py.x;
-    float mx = (cos_phi_ * sx - sin_phi_ * sy) * alpha_;
-    float my = (sin_phi_ * sx + cos_phi_ * sy) * alpha_;
-    return normalize(Vec3{-mx, -my, 1.f});
 }
 
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u) {

@@ -36,9 +36,10 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
     return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
 }
 
-/// Smith's masking function G1(v, m) for direction v and microfacet normal m.
-template <typename R>
-R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
+/// Smith's masking function G1(v, m) for direction v and microfacet normal m, of the
+/// distribution `Type` (a template argument for loops over one distribution, which inline it).
+template <MicrofacetType Type, typename R>
+R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
     using std::erf;
     using std::exp;
     using std::sqrt;
@@ -46,14 +47,22 @@ R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
     float xy2 = v.x * v.x + v.y * v.y;
     if (xy2 == 0.f) return R(1.f);
     float tan2 = xy2 / (v.z * v.z);
-    if (type == MicrofacetType::Beckmann) {
+    if constexpr (Type == MicrofacetType::Beckmann) {
         R a = 1.f / (alpha * std::sqrt(tan2));
         // Beyond a = 9, lambda < 1e-37: G1 is 1 in float and double (and exp would underflow).
         if (detach_real(a) > 9.f) return R(1.f);
         R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
         return 1.f / (1.f + lambda);
+    } else {
+        return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
     }
-    return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
+}
+
+/// Smith's masking function G1(v, m) for direction v and microfacet normal m.
+template <typename R>
+R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
+    return type == MicrofacetType::Beckmann ? smith_G1<MicrofacetType::Beckmann>(alpha, v, m)
+                                            : smith_G1<MicrofacetType::GGX>(alpha, v, m);
 }
 
 /// Density of sample_visible_normal(): G1(wi, m) |wi.m| D(m) / cos(wi).
@@ -76,8 +85,15 @@ public:
     Vec2 part_x(float u1) const;
     Vec2 part_y(float u2) const;
     Vec3 normal(Vec2 px, Vec2 py) const;
+    /// normal() of the sampler's distribution, given as `Type`.
+    template <MicrofacetType Type>
+    Vec3 normal(Vec2 px, Vec2 py) const;
 
 private:
+    /// Beckmann: whether wi is close enough to the normal for polar slopes. (A comparison,
+    /// not a stored flag: a vectorised loop can select on it.)
+    bool polar() const { return w_.z > 0.99999f; }
+
     MicrofacetType type_;
     float alpha_;
     Vec3 w_;  ///< wi stretched to the alpha = 1 configuration
@@ -85,11 +101,33 @@ private:
     Vec3 t1_, t2_;
     float s_ = 0.f;
     // Beckmann: rotation of the slopes to wi's azimuth; at (near) normal incidence the slopes
-    // are polar (radius from u.x, angle from u.y), else the CDF inversion's constants.
+    // are polar (radius from u.x, angle from u.y; see polar()), else the CDF inversion's
+    // constants.
     float cos_phi_ = 1.f, sin_phi_ = 0.f;
-    bool polar_ = false;
     float tan_i_ = 0.f, erf_cot_ = 0.f, fit_ = 0.f, normalization_ = 0.f;
 };
+
+// Inline: roughplastic's quadratures call it in loops that the compiler vectorises.
+template <MicrofacetType Type>
+inline Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
+    if constexpr (Type == MicrofacetType::GGX) {
+        float p1 = px.x * py.x, p2 = px.x * py.y;
+        p2 = (1.f - s_) * safe_sqrt(1.f - p1 * p1) + s_ * p2;
+        Vec3 nh = t1_ * p1 + t2_ * p2 + w_ * safe_sqrt(1.f - p1 * p1 - p2 * p2);
+        return normalize(Vec3{alpha_ * nh.x, alpha_ * nh.y, std::max(0.f, nh.z)});
+    } else {
+        // Slopes for alpha = 1, rotated to wi's azimuth and unstretched.
+        float sx = polar() ? px.x * py.x : px.x, sy = polar() ? px.x * py.y : py.x;
+        float mx = (cos_phi_ * sx - sin_phi_ * sy) * alpha_;
+        float my = (sin_phi_ * sx + cos_phi_ * sy) * alpha_;
+        return normalize(Vec3{-mx, -my, 1.f});
+    }
+}
+
+inline Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
+    return type_ == MicrofacetType::GGX ? normal<MicrofacetType::GGX>(px, py)
+                                        : normal<MicrofacetType::Beckmann>(px, py);
+}
 
 /// Sample a microfacet normal visible from wi (wi.z > 0), distributed as visible_normal_pdf.
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u);
