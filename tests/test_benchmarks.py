@@ -42,3 +42,15 @@ def test02_time_at_error():
     assert t == pytest.approx(64.0) and ext
     t, ext = bench.time_at_error(curve, 0.8)
     assert t == pytest.approx(0.25) and ext
+
+
+@pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
+def test03_variance_split_by_path_length(tmp_path):
+    bench = load_benchmark("bench_variance")
+    (r,) = bench.main(["--scenes", "cbox", "--res", "32", "--spp", "16", "--out", str(tmp_path)])
+    assert r["variance"] > 0 and (r["width"], r["height"]) == (32, 32)
+    assert r["emitters_seen"] + r["direct"] + r["longer"] == pytest.approx(1.0)
+    # The cbox's mirror and glass spheres and diffuse walls: every length matters (a render
+    # that ignored max_depth would put everything in the first share).
+    assert 0.1 < r["emitters_seen"] < 0.8 and r["longer"] > 0.15
+    assert (tmp_path / "variance.csv").exists()
