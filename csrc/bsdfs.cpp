@@ -102,44 +102,29 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
             return Point{wo.z > 0.f ? F : 0.f, wo, m};
         }
     };
-    // A row of points at a time, summed in order, in loops the compiler vectorises (the same
-    // operations, so the same results). GGX's G1 is plain arithmetic and joins its points'
-    // loop; Beckmann's calls libm's erf and exp, so it follows in a loop of its own, one
-    // point at a time. (Distribution and direction are template arguments: a loop-invariant
-    // branch inside a loop stops the vectoriser.)
+    // A row of points at a time, summed in order, in a loop the compiler vectorises. GGX's
+    // points are the same operations as the scalar formulas (so the same results); Beckmann's
+    // G1 takes erf and exp from polynomials (erfc_poly, exp_poly: libm's are scalar calls),
+    // within 2e-7 of the libm form. (Distribution and direction are template arguments: a
+    // loop-invariant branch inside the loop stops the vectoriser.)
     double sum = 0.0;
     auto rows = [&](auto type_constant, auto transmit_constant) {
         constexpr MicrofacetType Type = decltype(type_constant)::value;
-        // What the loops read as locals, which their stores cannot change (the vectoriser
-        // then reads them once); no local of a loop's body has its address taken (that makes
-        // it an array per lane).
+        // What the loop reads as locals, which its stores cannot change (the vectoriser then
+        // reads them once); no local of the loop's body has its address taken (that makes it
+        // an array per lane).
         const float a = alpha;
         const auto at = point;
         auto value_at = [at, a, type_constant, transmit_constant](Vec2 px_i, Vec2 py_j) {
             Point p = at(type_constant, transmit_constant, px_i, py_j);
-            return p.weight == 0.f ? 0.f : p.weight * smith_G1<Type>(a, p.v, p.m);
+            return p.weight == 0.f ? 0.f : p.weight * smith_G1<Type, true>(a, p.v, p.m);
         };
         const float *ux = py_x, *uy = py_y;
-        float value[128], weight[128], vx[128], vy[128], vz[128], mx[128], my[128], mz[128];
+        float value[128];
         for (int i = 0; i < res; ++i) {
             const Vec2 px_i = px[i];
-            if constexpr (Type == MicrofacetType::GGX) {
 #pragma omp simd
-                for (int j = 0; j < res; ++j) value[j] = value_at(px_i, Vec2{ux[j], uy[j]});
-            } else {
-#pragma omp simd
-                for (int j = 0; j < res; ++j) {
-                    Point p = at(type_constant, transmit_constant, px_i, Vec2{ux[j], uy[j]});
-                    weight[j] = p.weight;
-                    vx[j] = p.v.x, vy[j] = p.v.y, vz[j] = p.v.z;
-                    mx[j] = p.m.x, my[j] = p.m.y, mz[j] = p.m.z;
-                }
-                for (int j = 0; j < res; ++j) {
-                    value[j] = weight[j] == 0.f ? 0.f
-                                                : weight[j] * smith_G1<Type>(a, Vec3{vx[j], vy[j], vz[j]},
-                                                                             Vec3{mx[j], my[j], mz[j]});
-                }
-            }
+            for (int j = 0; j < res; ++j) value[j] = value_at(px_i, Vec2{ux[j], uy[j]});
             for (int j = 0; j < res; ++j) sum += value[j] * weights[i] * weights[j];
         }
     };

@@ -8,6 +8,9 @@
 #pragma once
 
 #include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <type_traits>
 
 #include "math.h"
 
@@ -36,9 +39,50 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
     return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
 }
 
+/// e^x for float x, from a polynomial (within 2 ulps of libm's expf; x below -87 gives
+/// e^-87): unlike libm's, it can be called in a loop that the compiler vectorises.
+inline float exp_poly(float x) {
+    x = std::max(x, -87.f);
+    // x = n ln2 + r, |r| <= ln2 / 2 (n rounded by the 1.5 * 2^23 trick; ln2 in two parts)
+    float n = (x * 1.44269504f + 12582912.f) - 12582912.f;
+    float r = (x - n * 0.693145751953125f) - n * 1.428606765330187e-6f;
+    // e^r to degree 7 (relative error below 1e-8), times 2^n from its exponent bits
+    float p = 1.f / 5040.f;
+    p = p * r + 1.f / 720.f;
+    p = p * r + 1.f / 120.f;
+    p = p * r + 1.f / 24.f;
+    p = p * r + 1.f / 6.f;
+    p = p * r + 0.5f;
+    p = p * r + 1.f;
+    p = p * r + 1.f;
+    int32_t bits = (int32_t(n) + 127) << 23;
+    float scale;
+    std::memcpy(&scale, &bits, sizeof scale);
+    return p * scale;
+}
+
+/// erfc(z) for float z >= 0 (Numerical Recipes' erfcc: fractional error below 1.2e-7, plus the
+/// rounding of z^2 in float), on exp_poly, so that vectorised loops can call it.
+inline float erfc_poly(float z) {
+    float t = 1.f / (1.f + 0.5f * z);
+    float p = 0.17087277f;
+    p = p * t - 0.82215223f;
+    p = p * t + 1.48851587f;
+    p = p * t - 1.13520398f;
+    p = p * t + 0.27886807f;
+    p = p * t - 0.18628806f;
+    p = p * t + 0.09678418f;
+    p = p * t + 0.37409196f;
+    p = p * t + 1.00002368f;
+    p = p * t - 1.26551223f;
+    return t * exp_poly(-z * z + p);
+}
+
 /// Smith's masking function G1(v, m) for direction v and microfacet normal m, of the
 /// distribution `Type` (a template argument for loops over one distribution, which inline it).
-template <MicrofacetType Type, typename R>
+/// With VectorMath, Beckmann's takes erf and exp from erfc_poly and exp_poly (float only):
+/// within 2e-7 of libm's, and vectorisable.
+template <MicrofacetType Type, bool VectorMath = false, typename R>
 R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
     using std::erf;
     using std::exp;
@@ -51,7 +95,13 @@ R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
         R a = 1.f / (alpha * std::sqrt(tan2));
         // Beyond a = 9, lambda < 1e-37: G1 is 1 in float and double (and exp would underflow).
         if (detach_real(a) > 9.f) return R(1.f);
-        R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
+        R lambda;
+        if constexpr (VectorMath) {
+            static_assert(std::is_same_v<R, float>, "VectorMath is for float");
+            lambda = erfc_poly(a) * -0.5f + exp_poly(-a * a) / (a * (2.f * 1.7724538509055159f));
+        } else {
+            lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
+        }
         return 1.f / (1.f + lambda);
     } else {
         return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
