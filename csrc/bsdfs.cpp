@@ -23,14 +23,6 @@ inline float fresnel(float cos_i, float eta, float *cos_t, float *eta_it, float 
     return 0.5f * (a_s * a_s + a_p * a_p);
 }
 
-}  // namespace
-
-float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
-    return fresnel(cos_i, eta, cos_t, eta_it, eta_ti);
-}
-
-namespace {
-
 /// Gauss-Legendre nodes and weights on [-1, 1] (Newton iteration on P_n).
 void gauss_legendre(int n, std::vector<double> *nodes, std::vector<double> *weights) {
     nodes->resize(n);
@@ -139,6 +131,10 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
 }
 
 }  // namespace
+
+float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
+    return fresnel(cos_i, eta, cos_t, eta_it, eta_ti);
+}
 
 void RoughPlasticTables::compute(MicrofacetType type_, float alpha_, float eta_) {
     type = type_;
