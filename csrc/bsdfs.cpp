@@ -6,23 +6,6 @@ namespace rbpt {
 
 namespace {
 
-/// fresnel_dielectric(), inline: roughplastic's quadratures call it in loops that the compiler
-/// vectorises.
-inline float fresnel(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
-    bool outside = cos_i >= 0.f;
-    float rcp_eta = 1.f / eta;
-    *eta_it = outside ? eta : rcp_eta;
-    *eta_ti = outside ? rcp_eta : eta;
-    float cos_t2 = 1.f - (*eta_ti) * (*eta_ti) * (1.f - cos_i * cos_i);
-    float ci = std::abs(cos_i), ct = safe_sqrt(cos_t2);
-    *cos_t = outside ? -ct : ct;
-    if (eta == 1.f) return 0.f;
-    if (ci == 0.f) return 1.f;
-    float a_s = (ci - *eta_it * ct) / (ci + *eta_it * ct);
-    float a_p = (ct - *eta_it * ci) / (ct + *eta_it * ci);
-    return 0.5f * (a_s * a_s + a_p * a_p);
-}
-
 /// Gauss-Legendre nodes and weights on [-1, 1] (Newton iteration on P_n).
 void gauss_legendre(int n, std::vector<double> *nodes, std::vector<double> *weights) {
     nodes->resize(n);
@@ -86,7 +69,7 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
         constexpr MicrofacetType Type = decltype(type_constant)::value;
         Vec3 m = sampler.normal<Type>(px_i, py_j);
         float cos_t, eta_it, eta_ti;
-        float F = fresnel(dot(wi, m), eta, &cos_t, &eta_it, &eta_ti);
+        float F = fresnel_dielectric(dot(wi, m), eta, &cos_t, &eta_it, &eta_ti);
         if constexpr (decltype(transmit_constant)::value) {
             return Point{1.f - F, m * (dot(wi, m) * eta_ti + cos_t) - wi * eta_ti, m};
         } else {
@@ -131,10 +114,6 @@ float rough_interface(MicrofacetType type, float alpha, const Vec3 &wi, float et
 }
 
 }  // namespace
-
-float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
-    return fresnel(cos_i, eta, cos_t, eta_it, eta_ti);
-}
 
 void RoughPlasticTables::compute(MicrofacetType type_, float alpha_, float eta_) {
     type = type_;

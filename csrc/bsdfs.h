@@ -90,8 +90,23 @@ struct BSDFSample {
 };
 
 /// Fresnel reflectance of a dielectric interface (Mitsuba's fresnel()): returns r and sets
-/// the cosine of the refracted direction (opposite sign to cos_i) and eta_it, eta_ti.
-float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti);
+/// the cosine of the refracted direction (opposite sign to cos_i) and eta_it, eta_ti. Inline:
+/// the BSDFs call it per vertex, and roughplastic's quadratures in loops that the compiler
+/// vectorises.
+inline float fresnel_dielectric(float cos_i, float eta, float *cos_t, float *eta_it, float *eta_ti) {
+    bool outside = cos_i >= 0.f;
+    float rcp_eta = 1.f / eta;
+    *eta_it = outside ? eta : rcp_eta;
+    *eta_ti = outside ? rcp_eta : eta;
+    float cos_t2 = 1.f - (*eta_ti) * (*eta_ti) * (1.f - cos_i * cos_i);
+    float ci = std::abs(cos_i), ct = safe_sqrt(cos_t2);
+    *cos_t = outside ? -ct : ct;
+    if (eta == 1.f) return 0.f;
+    if (ci == 0.f) return 1.f;
+    float a_s = (ci - *eta_it * ct) / (ci + *eta_it * ct);
+    float a_p = (ct - *eta_it * ci) / (ct + *eta_it * ci);
+    return 0.5f * (a_s * a_s + a_p * a_p);
+}
 
 /// Everything a BSDF query reads besides the directions.
 template <typename Ctx>
