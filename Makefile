@@ -72,6 +72,7 @@ bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_rays.py
 	$(PYTHON) benchmarks/bench_profile.py
 	$(PYTHON) benchmarks/bench_variance.py
+	$(PYTHON) benchmarks/bench_simd.py
 
 # The comparison as on an AVX2-only machine: ours built for x86-64-v3, Mitsuba's kernels
 # compiled for Haswell with 8 lanes; results in benchmarks/results/avx2. A later plain `make`

@@ -49,7 +49,7 @@ CBOX = SHARED / "cbox" / "cbox.xml"
 # setup.py's flags (plus -fwrapv, which setuptools adds from Python's own CFLAGS), including
 # -march=native unless PORTABLE=1, as for the extension.
 CXX_FLAGS = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare", "-O3", "-DNDEBUG", "-fwrapv",
-             "-ffp-contract=off", "-fno-math-errno"] + ([] if os.environ.get("PORTABLE", "0") == "1" else ["-march=native"])
+             "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"] + ([] if os.environ.get("PORTABLE", "0") == "1" else ["-march=native"])
 CORE_SOURCES = ["bvh.cpp", "shapes.cpp"]
 EMBREE_INSTALL = "apt-get install libembree-dev (Debian/Ubuntu), or set EMBREE_DIR to an Embree 3 install"
 

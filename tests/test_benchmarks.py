@@ -54,3 +54,19 @@ def test03_variance_split_by_path_length(tmp_path):
     # that ignored max_depth would put everything in the first share).
     assert 0.1 < r["emitters_seen"] < 0.8 and r["longer"] > 0.15
     assert (tmp_path / "variance.csv").exists()
+
+
+def test04_simd_stages_vectorise_bitwise(tmp_path):
+    # The shading stages run as one path at a time and as a loop GCC vectorises give the same
+    # bits with setup.py's flags (the premise of running paths in SIMD lanes without changing
+    # images), at every vector width this CPU runs.
+    bench = load_benchmark("bench_simd")
+    rows = bench.main(["--quick", "--out", str(tmp_path)])
+    builds = sorted({r["isa"] for r in rows})
+    assert "native" in builds and "portable" in builds
+    assert [r["stage"] for r in rows] == ["camera", "interaction", "vertex"] * len(builds)
+    for r in rows:
+        assert r["bitwise_equal"] == 1, r
+        assert math.isfinite(r["speedup"]) and r["scalar_ns"] > 0 and r["simd_ns"] > 0
+    with open(tmp_path / "simd_stages.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(rows)
