@@ -134,6 +134,12 @@ def test08_transform_conventions():
     cam = tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0])
     np.testing.assert_allclose(cam.matrix[:3, 2], [0, 0, -1])  # looks along -z
     np.testing.assert_allclose(cam.matrix[:3, 0], [-1, 0, 0])  # local x points left
+    # Chained as in Mitsuba 3 (T().translate(v).rotate(...)): each call composes on the
+    # right, instead of starting a new transform that drops what came before.
+    chained = tr.Transform.translate([1, 2, 3]).rotate([0, 0, 1], 90).scale(2)
+    np.testing.assert_allclose(chained.matrix, t.matrix, atol=1e-12)
+    np.testing.assert_allclose(tr.Transform().scale(3).matrix, np.diag([3, 3, 3, 1]))
+    np.testing.assert_allclose(cam.translate([0, 0, 1]).apply_point([0, 0, 0]), [0, 0, 3])
 
 
 # -- errors --------------------------------------------------------------------------------

@@ -5,10 +5,27 @@ from __future__ import annotations
 import numpy as np
 
 
+class _Composing:
+    """A constructor that, called on an instance, composes with it as Mitsuba 3's chained
+    transforms do: `t.scale(2)` is `t @ Transform.scale(2)` (not a fresh scale, which would
+    silently drop `t`)."""
+
+    def __init__(self, make):
+        self.make = make
+        self.__doc__ = make.__doc__
+
+    def __get__(self, obj, cls):
+        if obj is None:
+            return lambda *args, **kwargs: self.make(cls, *args, **kwargs)
+        return lambda *args, **kwargs: obj @ self.make(type(obj), *args, **kwargs)
+
+
 class Transform:
-    """An affine transform held as a (4, 4) float64 matrix; compose with `@` (right first).
+    """An affine transform held as a (4, 4) float64 matrix; compose with `@` (right first),
+    or chain as in Mitsuba 3 (each call applies to the points before the transform so far).
 
     >>> to_world = Transform.translate([0, 1, 0]) @ Transform.scale(0.5)
+    >>> to_world = Transform.translate([0, 1, 0]).scale(0.5)  # the same
     """
 
     def __init__(self, matrix=None):
@@ -17,18 +34,18 @@ class Transform:
             raise ValueError(f"Transform needs a (4, 4) matrix, got shape {m.shape}")
         self.matrix = m
 
-    @classmethod
+    @_Composing
     def translate(cls, v) -> "Transform":
         m = np.eye(4)
         m[:3, 3] = _vec3(v, "translate")
         return cls(m)
 
-    @classmethod
+    @_Composing
     def scale(cls, v) -> "Transform":
         s = np.full(3, float(v)) if np.ndim(v) == 0 else _vec3(v, "scale")
         return cls(np.diag([*s, 1.0]))
 
-    @classmethod
+    @_Composing
     def rotate(cls, axis, angle: float) -> "Transform":
         """Rotation by `angle` degrees counter-clockwise about `axis` (Rodrigues)."""
         a = _vec3(axis, "rotate axis")
