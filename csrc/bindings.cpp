@@ -5,6 +5,7 @@
 #include <ATen/Parallel.h>
 
 #include "render.h"
+#include "wavefront.h"
 
 namespace py = pybind11;
 using namespace rbpt;
@@ -269,6 +270,16 @@ py::tuple render_image(const Scene &scene, const py::dict &camera, const py::dic
     return py::make_tuple(image, rays);
 }
 
+/// Whether render_fwd traces this scene's float paths in SIMD lanes (wavefront.h), for tests.
+bool uses_wavefront(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                    const std::vector<torch::Tensor> &params) {
+    PlainTensors plain;
+    Camera cam = make_camera(camera);
+    IntegratorSettings cfg = make_integrator(integrator);
+    if (!params.empty() && params[0].scalar_type() == torch::kFloat64) return false;
+    RenderContext<RGB<float>> ctx(scene, bind_params<float>(scene, params));
+    return wavefront_scene(ctx, cfg, cam).has_value();
+}
 
 template <typename T>
 std::vector<std::optional<torch::Tensor>> render_bwd_typed(
@@ -863,6 +874,8 @@ PYBIND11_MODULE(_C, m) {
     m.def("render_fwd", &render_image, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
           py::arg("row_end") = -1);
+    m.def("uses_wavefront", &uses_wavefront, py::arg("scene"), py::arg("camera"),
+          py::arg("integrator"), py::arg("params"));
     m.def("render_bwd", &render_bwd_entry, py::arg("scene"), py::arg("camera"),
           py::arg("integrator"), py::arg("params"), py::arg("requires_grad"),
           py::arg("grad_image"), py::arg("spp"), py::arg("seed"));

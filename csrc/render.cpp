@@ -1,5 +1,7 @@
 #include "render.h"
 
+#include "wavefront.h"
+
 #include <atomic>
 #include <cassert>
 #include <mutex>
@@ -335,15 +337,61 @@ private:
     int next_border_ = 0;            ///< the next tile whose border is to be added
 };
 
+/// The samples of tile (tx, ty) traced by trace_wavefront() in batches, each batch splatted
+/// in the order the scalar loop splats (pixel by pixel, sample by sample), so that every pixel
+/// sums the same values in the same order. Returns the number of non-finite samples dropped.
+uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
+                              const Camera &camera, const IntegratorSettings &cfg,
+                              const RenderRequest &req, const Tiles &tiles, int tx, int ty,
+                              const Film &film, Film::Block &block) {
+    WavefrontSample batch[WavefrontBatch];
+    Vec2 pos[WavefrontBatch];
+    RGB<float> L[WavefrontBatch];
+    int n = 0;
+    uint64_t dropped = 0;
+    auto flush = [&] {
+        trace_wavefront(ctx, ws, cfg, camera, batch, n, pos, L);
+        for (int k = 0; k < n; ++k) {
+            if (!sample_is_finite(L[k])) {
+                ++dropped;
+                continue;
+            }
+            film.splat(block, batch[k].px, batch[k].py, pos[k], &L[k]);
+        }
+        n = 0;
+    };
+    for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
+                           [&](int px, int py, uint64_t key) {
+        PixelSeed seed(req.seed, key);
+        for (int s = 0; s < req.spp; ++s) {
+            batch[n++] = {px, py, seed, s};
+            if (n == WavefrontBatch) flush();
+        }
+    });
+    if (n > 0) flush();
+    return dropped;
+}
+
 /// Trace `spp` samples in every pixel of the rows `req` asks for (and of the border rows whose
 /// splats reach them) and splat them into `film`.
 template <typename S>
 void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const IntegratorSettings &cfg,
                    const RenderRequest &req, const Tiles &tiles, const WorkerPool &pool, Film &film) {
+    std::optional<WavefrontScene> wavefront;
+    if constexpr (std::is_same_v<S, RGB<float>>) wavefront = wavefront_scene(ctx, cfg, camera);
     std::atomic<uint64_t> rays{0}, nonfinite{0};
     for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
         uint64_t rays_before = rays_traced, dropped = 0;
         Film::Block block = film.block(tx, ty);
+        if constexpr (std::is_same_v<S, RGB<float>>) {
+            if (wavefront) {
+                dropped = splat_tile_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx, ty, film, block);
+                film.commit(tx, ty, std::move(block));
+                rays += rays_traced - rays_before;
+                nonfinite += dropped;
+                return;
+            }
+        }
         for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
                                [&](int px, int py, uint64_t key) {
             PixelSeed seed(req.seed, key);

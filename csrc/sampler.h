@@ -95,6 +95,18 @@ inline float sobol_2(uint32_t index, uint32_t scramble) {
     return float(scramble >> 8) * 0x1p-24f;
 }
 
+/// One step of a PCG32 stream (O'Neill 2014): the next 32 random bits.
+RBPT_INLINE uint32_t pcg32_next(uint64_t &state, uint64_t inc) {
+    uint64_t old = state;
+    state = old * 6364136223846793005ull + inc;
+    uint32_t xorshifted = uint32_t(((old >> 18u) ^ old) >> 27u);
+    uint32_t rot = uint32_t(old >> 59u);
+    return (xorshifted >> rot) | (xorshifted << ((~rot + 1u) & 31));
+}
+
+/// A float uniform in [0, 1) from 32 random bits (their top 24 as the mantissa).
+RBPT_INLINE float uniform_float(uint32_t bits) { return float(bits >> 8) * 0x1p-24f; }
+
 enum class SamplerType { Independent, Stratified, Multijitter, Orthogonal, LowDiscrepancy };
 
 /// A sampler plugin's settings: its kind, `jitter`, and the sample count rounded as
@@ -146,8 +158,9 @@ struct SamplerDesc {
 /// What the samples of one pixel share, hashed from (seed, pixel) once per pixel: the key of
 /// their random streams and the permutation seed of the stratified samplers' patterns.
 struct PixelSeed {
-    uint64_t stream;
-    uint32_t sequence;
+    uint64_t stream = 0;
+    uint32_t sequence = 0;
+    PixelSeed() = default;
     PixelSeed(uint64_t seed, uint64_t pixel) {
         stream = mix64(mix64(seed) ^ pixel);
         // One permutation seed per pixel (Mitsuba's per-sequence seed); dimensions offset it.
@@ -192,16 +205,15 @@ public:
         }
     }
 
-    uint32_t next_u32() {
-        uint64_t old = state_;
-        state_ = old * 6364136223846793005ull + inc_;
-        uint32_t xorshifted = uint32_t(((old >> 18u) ^ old) >> 27u);
-        uint32_t rot = uint32_t(old >> 59u);
-        return (xorshifted >> rot) | (xorshifted << ((~rot + 1u) & 31));
-    }
+    uint32_t next_u32() { return pcg32_next(state_, inc_); }
 
     /// Uniform float in [0, 1): 24 random mantissa bits.
-    float uniform() { return float(next_u32() >> 8) * 0x1p-24f; }
+    float uniform() { return uniform_float(next_u32()); }
+
+    /// The independent sampler's PCG32 stream (state, increment), for paths traced in SIMD
+    /// lanes (wavefront.h), which continue it with pcg32_next.
+    uint64_t pcg_state() const { return state_; }
+    uint64_t pcg_inc() const { return inc_; }
 
     float next_1d() {
         if (type_ == SamplerType::Independent) return uniform();

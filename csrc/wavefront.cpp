@@ -1,0 +1,353 @@
+#include "wavefront.h"
+
+#include <cstdlib>
+#include <cstring>
+
+namespace rbpt {
+
+std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &ctx,
+                                              const IntegratorSettings &cfg, const Camera &camera) {
+    const char *env = std::getenv("TORCH_RBPT_WAVEFRONT");
+    if (env && std::strcmp(env, "0") == 0) return std::nullopt;
+    const Scene &scene = ctx.scene;
+    if (cfg.type != IntegratorType::Path || cfg.max_depth == 0) return std::nullopt;
+    if (camera.sampler.type != SamplerType::Independent) return std::nullopt;
+    if (scene.environment >= 0 || scene.emitters.empty()) return std::nullopt;
+    WavefrontScene ws;
+    for (const BSDF &b : scene.bsdfs) {
+        const TextureRef &r = b.reflectance;
+        if (b.type != BSDFType::Diffuse || r.texture >= 0 || r.attribute >= 0 || r.param < 0)
+            return std::nullopt;
+        ws.materials.push_back({ctx.params.spectrum(r.param), b.twosided});
+    }
+    for (const Emitter &e : scene.emitters) {
+        if (e.type != EmitterType::Area) return std::nullopt;
+        const Shape &shape = scene.geometry.shapes[e.shape];
+        if (shape.kind != ShapeKind::Mesh || shape.tri_count == 0 || shape.tri_count > 8) return std::nullopt;
+        const Geometry &g = scene.geometry;
+        WavefrontScene::Light light;
+        light.radiance = ctx.params.spectrum(e.radiance);
+        light.has_normals = shape.has_normals;
+        light.flip_normals = shape.flip_normals;
+        light.area = shape.area;
+        for (uint32_t i = 0; i < 9; ++i) ws.cdf.push_back(i <= shape.tri_count ? shape.tri_cdf[i] : 2.f);
+        for (uint32_t t = 0; t < 8; ++t) {
+            const Triangle &tri = g.triangles[shape.tri_begin + std::min(t, shape.tri_count - 1)];
+            for (int j = 0; j < 3; ++j) {
+                ws.vertices.push_back(g.positions[tri.v[j]]);
+                ws.normals.push_back(shape.has_normals ? g.normals[tri.v[j]] : Vec3());
+            }
+            ws.face_normals.push_back(tri.n);
+        }
+        ws.lights.push_back(light);
+    }
+    return ws;
+}
+
+namespace {
+
+constexpr int B = WavefrontBatch;
+
+/// The batch's paths, one column per quantity; live paths are packed into [0, n).
+struct Batch {
+    // The ray to trace next.
+    float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B];
+    // The path: radiance, throughput, roulette throughput, the last BSDF sample's density and
+    // whether it was a delta one, the last vertex, its stream.
+    float Lr[B], Lg[B], Lb[B], br[B], bg[B], bb[B], rr_r[B], rr_g[B], rr_b[B];
+    float eta[B], prev_pdf[B], prev_px[B], prev_py[B], prev_pz[B];
+    int prev_delta[B];
+    uint64_t state[B], inc[B];
+    int seq[B];  ///< the sample's index in the caller's arrays
+    // The vertex found by this bounce's ray (SurfaceInteraction's fields).
+    float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B];
+    float sx[B], sy[B], sz[B], tx[B], ty[B], tz[B], fx[B], fy[B], fz[B];  ///< shading frame s, t, n
+    float wix[B], wiy[B], wiz[B];
+    int mat[B];
+    int alive[B];  ///< whether the path goes on after this bounce's BSDF sample and roulette
+    // The emitter sample's shadow ray and what it adds if nothing blocks it.
+    int shadow[B];
+    float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
+    float cr[B], cg[B], cb[B];
+};
+
+/// c ? a : b, component by component (a ternary on whole vectors selects an address, which
+/// the vectoriser cannot follow).
+RBPT_INLINE Vec3 select(bool c, const Vec3 &a, const Vec3 &b) {
+    return {c ? a.x : b.x, c ? a.y : b.y, c ? a.z : b.z};
+}
+
+/// next_float_up(v) where off > 0, next_float_down(v) where off < 0, v itself where off is
+/// zero: SurfaceInteraction::offset_p's rounding, without branches.
+RBPT_INLINE float round_away(float v, float off) {
+    uint32_t bits;
+    std::memcpy(&bits, &v, sizeof bits);
+    uint32_t up = v == 0.f ? 1u : (v > 0.f ? bits + 1u : bits - 1u);
+    up = v < Infinity ? up : bits;  // +inf and NaN stay
+    uint32_t down = v == 0.f ? 0x80000001u : (v < 0.f ? bits + 1u : bits - 1u);
+    down = v > -Infinity ? down : bits;  // -inf and NaN stay
+    bits = off > 0.f ? up : (off < 0.f ? down : bits);
+    std::memcpy(&v, &bits, sizeof v);
+    return v;
+}
+
+/// SurfaceInteraction::offset_p for lane k.
+RBPT_INLINE Vec3 offset_p(const Batch &b, int k, const Vec3 &d) {
+    Vec3 n{b.nx[k], b.ny[k], b.nz[k]}, p{b.px[k], b.py[k], b.pz[k]};
+    Vec3 offset = n * dot(vabs(n), Vec3{b.ex[k], b.ey[k], b.ez[k]});
+    offset = offset * (dot(n, d) < 0.f ? -1.f : 1.f);  // (exact; see vertex_stage on selects)
+    Vec3 o = p + offset;
+    return {round_away(o.x, offset.x), round_away(o.y, offset.y), round_away(o.z, offset.z)};
+}
+
+/// The next `count` numbers of lane k's stream where `draw` holds, as Sampler::uniform.
+RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
+    uint64_t state = b.state[k];
+    float u = uniform_float(pcg32_next(state, b.inc[k]));
+    b.state[k] = draw ? state : b.state[k];
+    return u;
+}
+
+/// The vector stage of a bounce for lanes [0, n): path_li from the emitter sample to the
+/// roulette, for diffuse vertices and mesh emitters.
+void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
+                  int depth) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const WavefrontScene::Light *lights = ws.lights.data();
+    const float *cdfs = ws.cdf.data();
+    const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
+    const Vec3 *face_normals = ws.face_normals.data();
+    const int n_lights = int(ws.lights.size());
+    // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
+    // vectorise the boolean selects it makes of && chains and of booleans combined with
+    // values that were themselves selected.
+    const float roulette = depth + 1 >= cfg.rr_depth ? 1.f : 0.f;
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        Vec3 p{b.px[k], b.py[k], b.pz[k]};
+        // The shading frame (its to_local and to_world written out: a Frame assigned in the
+        // loop would become an array per lane, which stops the vectoriser).
+        Vec3 fs{b.sx[k], b.sy[k], b.sz[k]}, ft{b.tx[k], b.ty[k], b.tz[k]}, fn{b.fx[k], b.fy[k], b.fz[k]};
+
+        // Sample an emitter (emitter_sample: one chosen uniformly, u.x reused) and a point on
+        // its mesh (Geometry::sample_direction).
+        Vec2 u;
+        u.x = next_1d(b, k, true);
+        u.y = next_1d(b, k, true);
+        int index = std::min(int(u.x * float(n_lights)), n_lights - 1);
+        u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
+        const WavefrontScene::Light &light = lights[index];
+        const int c = 9 * index;  // the light's CDF in light_cdf
+        uint32_t local = 0;
+        for (int i = 1; i < 8; ++i) local += cdfs[c + i] <= u.x;
+        float width = cdfs[c + int(local) + 1] - cdfs[c + int(local)];
+        u.x = std::min(width > 0.f ? (u.x - cdfs[c + int(local)]) / width : 0.f, 0.99999994f);
+        const int t = 8 * index + int(local);  // the triangle, in the flat arrays
+        Vec2 bc = warp::square_to_uniform_triangle(u);
+        float b0 = 1.f - bc.x - bc.y;
+        Vec3 lp = vertices[3 * t] * b0 + vertices[3 * t + 1] * bc.x + vertices[3 * t + 2] * bc.y;
+        Vec3 face_n{face_normals[t].x, face_normals[t].y, face_normals[t].z};
+        Vec3 vn = normalize(normals[3 * t] * b0 + normals[3 * t + 1] * bc.x + normals[3 * t + 2] * bc.y);
+        Vec3 ln = select(light.has_normals, vn, face_n);
+        ln = select(light.flip_normals, -ln, ln);
+        Vec3 d = lp - p;
+        float dist2 = squared_norm(d), dist = std::sqrt(dist2);
+        d = d * (1.f / dist);
+        float abs_cos = std::abs(dot(face_n, d));
+        float area_pdf = dist2 / (light.area * abs_cos);
+        float pdf = abs_cos > 0.f ? area_pdf : 0.f;
+        // A sample: emitter_sample's test pdf > 0 (sample_direction's pdf is zero at distance
+        // zero) and d facing the light's front.
+        float sampled = dist != 0.f ? 1.f : 0.f;
+        sampled = abs_cos > 0.f ? sampled : 0.f;
+        sampled = area_pdf > 0.f ? sampled : 0.f;
+        sampled = dot(d, ln) < 0.f ? sampled : 0.f;
+        float es_pdf = pdf / float(n_lights);
+        float inv_pdf = 1.f / es_pdf;
+        Color3f ew{light.radiance.v[0] * inv_pdf, light.radiance.v[1] * inv_pdf, light.radiance.v[2] * inv_pdf};
+        sampled = (ew.v[0] != 0.f) | (ew.v[1] != 0.f) | (ew.v[2] != 0.f) ? sampled : 0.f;  // not null
+
+        // The diffuse BSDF towards it (bsdf_eval_pdf, with twosided's flip) and its MIS weight.
+        Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
+        Vec3 wo{dot(d, fs), dot(d, ft), dot(d, fn)};
+        // The flip as a product with -1 (exact): a selected negation, compared later, would
+        // again become a boolean select.
+        float side = wi.z < 0.f ? -1.f : 1.f;
+        side = m.twosided != 0 ? side : 1.f;
+        wi.z = wi.z * side;
+        wo.z = wo.z * side;
+        float up = wi.z > 0.f ? 1.f : 0.f;
+        up = wo.z > 0.f ? up : 0.f;
+        float cos_term = InvPi * wo.z;
+        Color3f f{up != 0.f ? m.reflectance.v[0] * cos_term : 0.f, up != 0.f ? m.reflectance.v[1] * cos_term : 0.f,
+                  up != 0.f ? m.reflectance.v[2] * cos_term : 0.f};
+        float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
+        // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
+        // of f, which was selected, would again become a boolean select).
+        float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
+        sampled = f_sum != 0.f ? sampled : 0.f;
+        float w = mis_weight(es_pdf, f_pdf);
+        b.cr[k] = b.br[k] * f.v[0] * ew.v[0] * w;
+        b.cg[k] = b.bg[k] * f.v[1] * ew.v[1] * w;
+        b.cb[k] = b.bb[k] * f.v[2] * ew.v[2] * w;
+        // Its shadow ray (SurfaceInteraction::spawn_ray_to).
+        Vec3 so = offset_p(b, k, lp - p);
+        Vec3 sd = lp - so;
+        float sdist = norm(sd);
+        sd = sd / sdist;
+        b.shadow[k] = sampled != 0.f;
+        b.sox[k] = so.x, b.soy[k] = so.y, b.soz[k] = so.z;
+        b.sdx[k] = sd.x, b.sdy[k] = sd.y, b.sdz[k] = sd.z;
+        b.stmax[k] = sdist * (1.f - ShadowEpsilon);
+
+        // Sample the BSDF for the next ray (bsdf_sample: cosine-weighted, in the flipped frame).
+        next_1d(b, k, true);  // u1: unused by the diffuse BSDF
+        Vec2 u2;
+        u2.x = next_1d(b, k, true);
+        u2.y = next_1d(b, k, true);
+        Vec3 bwo = warp::square_to_cosine_hemisphere(u2);
+        float cos_pdf = warp::square_to_cosine_hemisphere_pdf(bwo);
+        float alive = wi.z > 0.f ? 1.f : 0.f;  // DiffuseBSDF::sample's tests, then the roulette's
+        float bpdf = bwo.z > 0.f ? alive * cos_pdf : 0.f;  // (alive is 1 or 0: exact)
+        alive = bpdf > 0.f ? alive : 0.f;
+        bwo.z = bwo.z * side;
+        const Color3f &weight = m.reflectance;
+        float br = b.br[k] * weight.v[0], bg = b.bg[k] * weight.v[1], bb = b.bb[k] * weight.v[2];
+        float rr_r = b.rr_r[k] * weight.v[0], rr_g = b.rr_g[k] * weight.v[1], rr_b = b.rr_b[k] * weight.v[2];
+        float eta = b.eta[k] * 1.f;
+        Vec3 dn = fs * bwo.x + ft * bwo.y + fn * bwo.z;
+        Vec3 o = offset_p(b, k, dn);
+
+        // Russian roulette (path_li's): survival with the roulette throughput, capped.
+        float beta_max = std::max(rr_r, std::max(rr_g, rr_b));
+        alive = beta_max > 0.f ? alive : 0.f;
+        float q = std::min(beta_max * eta * eta, MaxSurvival);
+        float u_rr = next_1d(b, k, alive * roulette != 0.f);
+        float dies = u_rr >= q ? roulette : 0.f;
+        alive = dies != 0.f ? 0.f : alive;
+        float inv_q = 1.f / q;
+        br = roulette != 0.f ? br * inv_q : br;
+        bg = roulette != 0.f ? bg * inv_q : bg;
+        bb = roulette != 0.f ? bb * inv_q : bb;
+        rr_r = roulette != 0.f ? rr_r * inv_q : rr_r;
+        rr_g = roulette != 0.f ? rr_g * inv_q : rr_g;
+        rr_b = roulette != 0.f ? rr_b * inv_q : rr_b;
+
+        b.alive[k] = alive != 0.f;
+        b.br[k] = br, b.bg[k] = bg, b.bb[k] = bb;
+        b.rr_r[k] = rr_r, b.rr_g[k] = rr_g, b.rr_b[k] = rr_b;
+        b.eta[k] = eta;
+        b.prev_px[k] = p.x, b.prev_py[k] = p.y, b.prev_pz[k] = p.z;
+        b.prev_pdf[k] = bpdf;
+        b.prev_delta[k] = 0;
+        b.ox[k] = o.x, b.oy[k] = o.y, b.oz[k] = o.z;
+        b.dx[k] = dn.x, b.dy[k] = dn.y, b.dz[k] = dn.z;
+        b.tmin[k] = 0.f;
+        b.tmax[k] = Infinity;
+    }
+}
+
+/// Move lane `from` to lane `to` (to < from): what the next bounce reads.
+void move_lane(Batch &b, int from, int to) {
+    float *columns[] = {b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax, b.Lr, b.Lg, b.Lb,
+                        b.br, b.bg, b.bb, b.rr_r, b.rr_g, b.rr_b, b.eta, b.prev_pdf,
+                        b.prev_px, b.prev_py, b.prev_pz};
+    for (float *c : columns) c[to] = c[from];
+    b.prev_delta[to] = b.prev_delta[from];
+    b.state[to] = b.state[from];
+    b.inc[to] = b.inc[from];
+    b.seq[to] = b.seq[from];
+}
+
+}  // namespace
+
+void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
+                     const IntegratorSettings &cfg, const Camera &camera,
+                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L) {
+    const Scene &scene = ctx.scene;
+    static thread_local Batch b;  // 64 kB: no stack frame of its own
+    // Camera rays, one sample at a time (Camera and Sampler's own code).
+    for (int k = 0; k < n; ++k) {
+        const WavefrontSample &s = samples[k];
+        Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
+        pos[k] = camera.sample_position(s.px, s.py, sampler);
+        Ray ray = camera.sample_ray(pos[k], sampler);
+        b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+        b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+        b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+        b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
+        b.br[k] = b.bg[k] = b.bb[k] = 1.f;
+        b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
+        b.eta[k] = 1.f;
+        b.prev_pdf[k] = 1.f;
+        b.prev_delta[k] = 1;
+        b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
+        b.state[k] = sampler.pcg_state();
+        b.inc[k] = sampler.pcg_inc();
+        b.seq[k] = k;
+    }
+    auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
+    for (int depth = 0; n > 0; ++depth) {
+        // Trace each path's ray and add the emission it finds, MIS-weighted (path_li's code);
+        // paths whose ray escaped, or that reached max_depth, end here.
+        bool last = cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth;
+        int live = 0;
+        for (int k = 0; k < n; ++k) {
+            Ray ray;
+            ray.o = {b.ox[k], b.oy[k], b.oz[k]};
+            ray.d = {b.dx[k], b.dy[k], b.dz[k]};
+            ray.tmin = b.tmin[k];
+            ray.tmax = b.tmax[k];
+            int emitter;
+            SurfaceInteraction si = last ? scene.intersect_emitter(ray, &emitter) : scene.intersect(ray);
+            if (!last) emitter = scene.emitter_at(si);
+            if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
+                const Emitter &e = scene.emitters[emitter];
+                Vec3 prev_p{b.prev_px[k], b.prev_py[k], b.prev_pz[k]};
+                float em_pdf = b.prev_delta[k] ? 0.f : emitter_pdf(ctx, e, prev_p, si);
+                RGB<float> beta(b.br[k], b.bg[k], b.bb[k]);
+                RGB<float> Le = beta * emitter_eval<RGB<float>>(ctx, e, si) * mis_weight(b.prev_pdf[k], em_pdf);
+                b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+            }
+            if (!si.valid || last) {
+                finish(k);
+                continue;
+            }
+            // The vertex goes on to the vector stage, in lane `live`.
+            if (live != k) move_lane(b, k, live);
+            int j = live++;
+            b.px[j] = si.p.x, b.py[j] = si.p.y, b.pz[j] = si.p.z;
+            b.ex[j] = si.p_error.x, b.ey[j] = si.p_error.y, b.ez[j] = si.p_error.z;
+            b.nx[j] = si.n.x, b.ny[j] = si.n.y, b.nz[j] = si.n.z;
+            const Frame &f = si.sh_frame;
+            b.sx[j] = f.s.x, b.sy[j] = f.s.y, b.sz[j] = f.s.z;
+            b.tx[j] = f.t.x, b.ty[j] = f.t.y, b.tz[j] = f.t.z;
+            b.fx[j] = f.n.x, b.fy[j] = f.n.y, b.fz[j] = f.n.z;
+            b.wix[j] = si.wi.x, b.wiy[j] = si.wi.y, b.wiz[j] = si.wi.z;
+            b.mat[j] = scene.bsdf_at(si);
+        }
+        n = live;
+        vertex_stage(b, n, ws, cfg, depth);
+        // Shadow rays; then the paths that ended hand back their radiance, the rest move up.
+        live = 0;
+        for (int k = 0; k < n; ++k) {
+            if (b.shadow[k]) {
+                Ray ray;
+                ray.o = {b.sox[k], b.soy[k], b.soz[k]};
+                ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
+                ray.tmax = b.stmax[k];
+                if (!scene.occluded(ray)) b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
+            }
+            if (!b.alive[k]) {
+                finish(k);
+                continue;
+            }
+            if (live != k) move_lane(b, k, live);
+            ++live;
+        }
+        n = live;
+    }
+}
+
+}  // namespace rbpt

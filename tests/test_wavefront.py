@@ -1,0 +1,136 @@
+"""The wavefront (csrc/wavefront.h): float renders of the path integrator whose vertices are
+shaded in SIMD lanes give the scalar integrator's images bit for bit, and scenes outside its
+subset are left to the scalar integrator."""
+import pytest
+import torch
+
+import torch_rbpt as tr
+from torch_rbpt import _C
+from conftest import SHARED, torch_threads
+
+# A quad light with vertex normals (2 triangles) and a strip light of 6 triangles.
+QUAD_OBJ = """v -0.3 1.5 -0.3
+v 0.3 1.5 -0.3
+v 0.3 1.5 0.3
+v -0.3 1.5 0.3
+vn 0 -1 0
+vn 0.1 -1 0
+vn 0 -1 0.1
+vn 0 -1 0
+f 1//1 2//2 3//3
+f 1//1 3//3 4//4
+"""
+STRIP_OBJ = "".join(f"v {x} 0.2 {z}\n" for x in (-1.0, -0.5, 0.0, 0.5) for z in (0.9, 1.0)) + \
+    "".join(f"f {2 * i + 1} {2 * i + 3} {2 * i + 4}\nf {2 * i + 1} {2 * i + 4} {2 * i + 2}\n" for i in range(3))
+
+
+def uses_wavefront(scene, sensor=0):
+    return _C.uses_wavefront(scene._native, scene.sensors[sensor].native(), scene.integrator.native(),
+                             scene.param_list())
+
+
+def room_dict(tmp_path, integrator=None, **extra):
+    """Diffuse walls (one-sided and twosided), a quad light with vertex normals, a strip light
+    of 6 triangles seen from its back (flip_normals), and a rectangle light."""
+    (tmp_path / "quad.obj").write_text(QUAD_OBJ)
+    (tmp_path / "strip.obj").write_text(STRIP_OBJ)
+    d = {
+        "type": "scene",
+        "integrator": {"type": "path", **(integrator or {})},
+        "sensor": {"type": "perspective", "fov": 50,
+                   "to_world": tr.Transform.look_at([0, 0.6, 3.2], [0, 0.5, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 21, "height": 13, "rfilter": {"type": "tent"}}},
+        "floor": {"type": "rectangle", "to_world": tr.Transform.rotate([1, 0, 0], -90).scale(2),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.7, 0.5]}}},
+        "back": {"type": "rectangle", "to_world": tr.Transform.translate([0, 1, -1]).scale(2),
+                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": 0.6}}},
+        "side": {"type": "rectangle", "to_world": tr.Transform.translate([-1.2, 1, 0]).rotate([0, 1, 0], 90).scale(2),
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.7, 0.3]}}},
+        "quad": {"type": "obj", "filename": str(tmp_path / "quad.obj"),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [6.0, 5.0, 4.0]}}},
+        "strip": {"type": "obj", "filename": str(tmp_path / "strip.obj"), "flip_normals": True,
+                  "emitter": {"type": "area", "radiance": 2.0}},
+        "panel": {"type": "rectangle", "to_world": tr.Transform.translate([1.1, 0.8, 0]).rotate([0, 1, 0], -90).scale(0.3),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 3.0, 6.0]}}},
+    }
+    d.update(extra)
+    return d
+
+
+def room(tmp_path, integrator=None, **extra):
+    return tr.load_dict(room_dict(tmp_path, integrator, **extra))
+
+
+def render_both(scene, monkeypatch, **kw):
+    """The image with the wavefront, and with the scalar integrator."""
+    assert uses_wavefront(scene)
+    wavefront = tr.render(scene, **kw)
+    with monkeypatch.context() as m:
+        m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+        assert not uses_wavefront(scene)
+        scalar = tr.render(scene, **kw)
+    return wavefront, scalar
+
+
+@pytest.mark.parametrize("integrator", [
+    {}, {"max_depth": 1}, {"max_depth": 2}, {"max_depth": 4, "rr_depth": 1}, {"rr_depth": 2},
+    {"hide_emitters": True}])
+def test01_wavefront_image_is_the_scalar_image_bitwise(tmp_path, monkeypatch, integrator):
+    scene = room(tmp_path, integrator)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)  # batches of 256 split pixels
+    assert float(scalar.mean()) > 0.01  # lit by the lights, also with the emitters hidden
+    assert torch.equal(wavefront, scalar)
+
+
+def test02_wavefront_is_deterministic_across_threads(tmp_path):
+    scene = room(tmp_path)
+    with torch_threads(1):
+        one = tr.render(scene, spp=32, seed=2)
+    with torch_threads(2):
+        two = tr.render(scene, spp=32, seed=2)
+    assert torch.equal(one, two)
+
+
+def test03_gradients_with_the_wavefront_forward_pass(tmp_path, monkeypatch):
+    # The forward pass of a differentiable render takes the wavefront; the backward pass the
+    # scalar integrator's autodiff type. The gradient does not depend on which forward ran.
+    grads = []
+    for mode in ("1", "0"):
+        monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", mode)
+        scene = room(tmp_path)
+        key = "floor.bsdf.reflectance.value"
+        scene.params[key].requires_grad_(True)
+        image = tr.render(scene, spp=8, seed=1)
+        (image ** 2).mean().backward()
+        grads.append(scene.params[key].grad.clone())
+    assert torch.equal(grads[0], grads[1]) and float(grads[0].abs().sum()) > 0
+
+
+@pytest.mark.skipif(not (SHARED / "cornell-box" / "scene_v3.xml").exists(), reason="shared scenes not present")
+def test04_cornell_box_takes_the_wavefront(monkeypatch):
+    scene = tr.load_file(SHARED / "cornell-box" / "scene_v3.xml")
+    scene.sensor.film.width = scene.sensor.film.height = 24
+    wavefront, scalar = render_both(scene, monkeypatch, spp=16, seed=9)
+    assert torch.equal(wavefront, scalar)
+
+
+@pytest.mark.parametrize("change", ["mirror", "texture", "cube light", "environment", "stratified",
+                                    "direct", "float64"])
+def test05_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
+    d = room_dict(tmp_path)
+    if change == "mirror":
+        d["ball"] = {"type": "sphere", "radius": 0.2, "bsdf": {"type": "conductor"}}
+    elif change == "texture":
+        d["floor"]["bsdf"] = {"type": "diffuse", "reflectance": {"type": "checkerboard"}}
+    elif change == "cube light":  # 12 triangles: more than the vector stage's 8
+        d["box"] = {"type": "cube", "to_world": tr.Transform.scale(0.1),
+                    "emitter": {"type": "area", "radiance": 1.0}}
+    elif change == "environment":
+        d["sky"] = {"type": "constant"}
+    elif change == "stratified":
+        d["sensor"]["sampler"] = {"type": "stratified"}
+    elif change == "direct":
+        d["integrator"] = {"type": "direct"}
+    scene = tr.load_dict(d, dtype=torch.float64 if change == "float64" else torch.float32)
+    assert not uses_wavefront(scene)
+    assert uses_wavefront(room(tmp_path))
