@@ -109,7 +109,9 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
 }
 
 /// The vector stage of a bounce for lanes [0, n): path_li from the emitter sample to the
-/// roulette, for diffuse vertices and mesh emitters.
+/// roulette, for diffuse vertices and mesh emitters. With OneLight (a scene of one emitter,
+/// the common case) the light's data is the same in every lane: loads, not gathers.
+template <bool OneLight>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -117,7 +119,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     const float *cdfs = ws.cdf.data();
     const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
     const Vec3 *face_normals = ws.face_normals.data();
-    const int n_lights = int(ws.lights.size());
+    const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
     // vectorise the boolean selects it makes of && chains and of booleans combined with
     // values that were themselves selected.
@@ -135,7 +137,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec2 u;
         u.x = next_1d(b, k, true);
         u.y = next_1d(b, k, true);
-        int index = std::min(int(u.x * float(n_lights)), n_lights - 1);
+        int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
         const WavefrontScene::Light &light = lights[index];
         const int c = 9 * index;  // the light's CDF in light_cdf
@@ -249,14 +251,17 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
 }
 
 /// Move lane `from` to lane `to` (to < from): what the next bounce reads.
-void move_lane(Batch &b, int from, int to) {
-    float *columns[] = {b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax, b.Lr, b.Lg, b.Lb,
-                        b.br, b.bg, b.bb, b.rr_r, b.rr_g, b.rr_b, b.eta, b.prev_pdf,
-                        b.prev_px, b.prev_py, b.prev_pz};
-    for (float *c : columns) c[to] = c[from];
+RBPT_INLINE void move_lane(Batch &b, int from, int to) {
+    b.ox[to] = b.ox[from], b.oy[to] = b.oy[from], b.oz[to] = b.oz[from];
+    b.dx[to] = b.dx[from], b.dy[to] = b.dy[from], b.dz[to] = b.dz[from];
+    b.tmin[to] = b.tmin[from], b.tmax[to] = b.tmax[from];
+    b.Lr[to] = b.Lr[from], b.Lg[to] = b.Lg[from], b.Lb[to] = b.Lb[from];
+    b.br[to] = b.br[from], b.bg[to] = b.bg[from], b.bb[to] = b.bb[from];
+    b.rr_r[to] = b.rr_r[from], b.rr_g[to] = b.rr_g[from], b.rr_b[to] = b.rr_b[from];
+    b.eta[to] = b.eta[from], b.prev_pdf[to] = b.prev_pdf[from];
+    b.prev_px[to] = b.prev_px[from], b.prev_py[to] = b.prev_py[from], b.prev_pz[to] = b.prev_pz[from];
     b.prev_delta[to] = b.prev_delta[from];
-    b.state[to] = b.state[from];
-    b.inc[to] = b.inc[from];
+    b.state[to] = b.state[from], b.inc[to] = b.inc[from];
     b.seq[to] = b.seq[from];
 }
 
@@ -328,7 +333,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.mat[j] = scene.bsdf_at(si);
         }
         n = live;
-        vertex_stage(b, n, ws, cfg, depth);
+        if (ws.lights.size() == 1) {
+            vertex_stage<true>(b, n, ws, cfg, depth);
+        } else {
+            vertex_stage<false>(b, n, ws, cfg, depth);
+        }
         // Shadow rays; then the paths that ended hand back their radiance, the rest move up.
         live = 0;
         for (int k = 0; k < n; ++k) {
