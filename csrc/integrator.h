@@ -68,15 +68,73 @@ RBPT_INLINE Ray shadow_ray(const SurfaceInteraction &si, const EmitterSample<S> 
     return std::isinf(es.dist) ? si.spawn_ray(es.d) : si.spawn_ray_to(es.p);
 }
 
+/// A path between two vertices: path_li's loop state.
 template <typename S>
-S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
-    const Scene &scene = ctx.scene;
-    S L(0.f), beta(1.f);
-    if (cfg.max_depth == 0) return L;  // as Mitsuba: no vertex at all, not even emitters seen
-    Color3f beta_rr(1.f);  // detached throughput for roulette (see roulette_factor)
+struct PathState {
+    S L = S(0.f), beta = S(1.f);
+    Color3f beta_rr = Color3f(1.f);  ///< detached throughput for roulette (see roulette_factor)
     float eta = 1.f, prev_pdf = 1.f;
     bool prev_delta = true;
     Vec3 prev_p;
+};
+
+/// path_li's work at the surface vertex `si` of depth `depth`, after the emission found
+/// there: the emitter sample and its shadow ray, the BSDF sample for the next ray (into
+/// `ray`) and Russian roulette. Returns whether the path goes on. (The wavefront runs it for
+/// the vertices its vector stage does not shade.)
+template <typename S>
+RBPT_INLINE bool path_vertex(const RenderContext<S> &ctx, const IntegratorSettings &cfg, int depth,
+                             const SurfaceInteraction &si, Sampler &sampler, PathState<S> &path,
+                             Ray &ray) {
+    const Scene &scene = ctx.scene;
+    int bsdf_index = scene.bsdf_at(si);
+    const BSDF &bsdf = scene.bsdfs[bsdf_index];
+
+    // Sample an emitter and add its MIS-weighted direct illumination. The BSDF comes
+    // first: where it is null (e.g. the emitter is below the horizon), no shadow ray.
+    if (bsdf.smooth()) {
+        auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
+        if (es && !is_null(es->weight)) {
+            BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
+            if (!is_null(f.value) && !scene.occluded(shadow_ray(si, *es))) {
+                float w = es->delta ? 1.f : mis_weight(es->pdf, f.pdf);
+                path.L += path.beta * f.value * es->weight * real_t<S>(w);
+            }
+        }
+    }
+
+    // Sample the BSDF for the direction of the next ray.
+    float u1 = sampler.next_1d();
+    Vec2 u2 = sampler.next_2d();
+    auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
+    if (!bs) return false;
+    path.beta *= bs->weight;
+    path.beta_rr *= roulette_factor(bs->weight);
+    path.eta *= bs->eta;
+    path.prev_p = si.p;
+    path.prev_pdf = bs->pdf;
+    path.prev_delta = bs->delta;
+    si.spawn_ray(si.to_world(bs->wo), &ray);
+
+    // Possibly terminate the path with Russian roulette. The survival probability is the
+    // roulette throughput itself (capped just below 1), so a surviving path's weight
+    // stays bounded by its BSDF weights: no growth at high albedo.
+    float beta_max = max_component(path.beta_rr);
+    if (!(beta_max > 0.f)) return false;
+    if (depth + 1 >= cfg.rr_depth) {
+        float q = std::min(beta_max * path.eta * path.eta, MaxSurvival);
+        if (sampler.next_1d() >= q) return false;
+        path.beta = path.beta * real_t<S>(1.f / q);
+        path.beta_rr = path.beta_rr * (1.f / q);
+    }
+    return true;
+}
+
+template <typename S>
+S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, Sampler &sampler) {
+    const Scene &scene = ctx.scene;
+    PathState<S> path;
+    if (cfg.max_depth == 0) return path.L;  // as Mitsuba: no vertex at all, not even emitters seen
     for (int depth = 0;; ++depth) {
         // Find the next surface along the ray; at the last vertex max_depth allows, only an
         // emitter's (the interaction is completed for emitters only).
@@ -88,54 +146,17 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
         if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
             const Emitter &e = scene.emitters[emitter];
-            float em_pdf = prev_delta ? 0.f : emitter_pdf(ctx, e, prev_p, si);
-            L += beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(prev_pdf, em_pdf));
+            float em_pdf = path.prev_delta ? 0.f : emitter_pdf(ctx, e, path.prev_p, si);
+            path.L += path.beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(path.prev_pdf, em_pdf));
         }
 
         // Stop when the ray escaped or the next vertex would exceed max_depth.
         if (!si.valid || last) break;
-        int bsdf_index = scene.bsdf_at(si);
-        const BSDF &bsdf = scene.bsdfs[bsdf_index];
 
-        // Sample an emitter and add its MIS-weighted direct illumination. The BSDF comes
-        // first: where it is null (e.g. the emitter is below the horizon), no shadow ray.
-        if (bsdf.smooth()) {
-            auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
-            if (es && !is_null(es->weight)) {
-                BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
-                if (!is_null(f.value) && !scene.occluded(shadow_ray(si, *es))) {
-                    float w = es->delta ? 1.f : mis_weight(es->pdf, f.pdf);
-                    L += beta * f.value * es->weight * real_t<S>(w);
-                }
-            }
-        }
-
-        // Sample the BSDF for the direction of the next ray.
-        float u1 = sampler.next_1d();
-        Vec2 u2 = sampler.next_2d();
-        auto bs = bsdf_sample<S>(bsdf, ctx, bsdf_index, si, u1, u2);
-        if (!bs) break;
-        beta *= bs->weight;
-        beta_rr *= roulette_factor(bs->weight);
-        eta *= bs->eta;
-        prev_p = si.p;
-        prev_pdf = bs->pdf;
-        prev_delta = bs->delta;
-        si.spawn_ray(si.to_world(bs->wo), &ray);
-
-        // Possibly terminate the path with Russian roulette. The survival probability is the
-        // roulette throughput itself (capped just below 1), so a surviving path's weight
-        // stays bounded by its BSDF weights: no growth at high albedo.
-        float beta_max = max_component(beta_rr);
-        if (!(beta_max > 0.f)) break;
-        if (depth + 1 >= cfg.rr_depth) {
-            float q = std::min(beta_max * eta * eta, MaxSurvival);
-            if (sampler.next_1d() >= q) break;
-            beta = beta * real_t<S>(1.f / q);
-            beta_rr = beta_rr * (1.f / q);
-        }
+        // Shade the vertex and continue along the next ray, unless the path ends there.
+        if (!path_vertex(ctx, cfg, depth, si, sampler, path, ray)) break;
     }
-    return L;
+    return path.L;
 }
 
 template <typename S>

@@ -214,6 +214,13 @@ public:
     /// lanes (wavefront.h), which continue it with pcg32_next.
     uint64_t pcg_state() const { return state_; }
     uint64_t pcg_inc() const { return inc_; }
+    /// The independent sampler continuing the stream (pcg_state(), pcg_inc()).
+    static Sampler independent(uint64_t state, uint64_t inc) {
+        Sampler s;
+        s.state_ = state;
+        s.inc_ = inc;
+        return s;
+    }
 
     float next_1d() {
         if (type_ == SamplerType::Independent) return uniform();
@@ -229,6 +236,8 @@ public:
 
 private:
     static constexpr float OneMinusEpsilon = 0x1.fffffep-1f;
+
+    Sampler() = default;
 
     /// The PCG32 stream of sample `sample` of the pixel whose stream key is `key`.
     Sampler(uint64_t key, uint64_t sample) {

@@ -14,12 +14,14 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     if (camera.sampler.type != SamplerType::Independent) return std::nullopt;
     if (scene.environment >= 0 || scene.emitters.empty()) return std::nullopt;
     WavefrontScene ws;
+    bool any_lanes = false;
     for (const BSDF &b : scene.bsdfs) {
         const TextureRef &r = b.reflectance;
-        if (b.type != BSDFType::Diffuse || r.texture >= 0 || r.attribute >= 0 || r.param < 0)
-            return std::nullopt;
-        ws.materials.push_back({ctx.params.spectrum(r.param), b.twosided});
+        bool lanes = b.type == BSDFType::Diffuse && r.texture < 0 && r.attribute < 0 && r.param >= 0;
+        any_lanes = any_lanes || lanes;
+        ws.materials.push_back({lanes, lanes ? ctx.params.spectrum(r.param) : Color3f(0.f), b.twosided});
     }
+    if (!any_lanes) return std::nullopt;
     for (const Emitter &e : scene.emitters) {
         if (e.type != EmitterType::Area) return std::nullopt;
         const Shape &shape = scene.geometry.shapes[e.shape];
@@ -250,19 +252,48 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     }
 }
 
-/// Move lane `from` to lane `to` (to < from): what the next bounce reads.
-RBPT_INLINE void move_lane(Batch &b, int from, int to) {
-    b.ox[to] = b.ox[from], b.oy[to] = b.oy[from], b.oz[to] = b.oz[from];
-    b.dx[to] = b.dx[from], b.dy[to] = b.dy[from], b.dz[to] = b.dz[from];
-    b.tmin[to] = b.tmin[from], b.tmax[to] = b.tmax[from];
-    b.Lr[to] = b.Lr[from], b.Lg[to] = b.Lg[from], b.Lb[to] = b.Lb[from];
-    b.br[to] = b.br[from], b.bg[to] = b.bg[from], b.bb[to] = b.bb[from];
-    b.rr_r[to] = b.rr_r[from], b.rr_g[to] = b.rr_g[from], b.rr_b[to] = b.rr_b[from];
-    b.eta[to] = b.eta[from], b.prev_pdf[to] = b.prev_pdf[from];
-    b.prev_px[to] = b.prev_px[from], b.prev_py[to] = b.prev_py[from], b.prev_pz[to] = b.prev_pz[from];
-    b.prev_delta[to] = b.prev_delta[from];
-    b.state[to] = b.state[from], b.inc[to] = b.inc[from];
-    b.seq[to] = b.seq[from];
+/// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
+RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
+    b.ox[to] = a.ox[from], b.oy[to] = a.oy[from], b.oz[to] = a.oz[from];
+    b.dx[to] = a.dx[from], b.dy[to] = a.dy[from], b.dz[to] = a.dz[from];
+    b.tmin[to] = a.tmin[from], b.tmax[to] = a.tmax[from];
+    b.Lr[to] = a.Lr[from], b.Lg[to] = a.Lg[from], b.Lb[to] = a.Lb[from];
+    b.br[to] = a.br[from], b.bg[to] = a.bg[from], b.bb[to] = a.bb[from];
+    b.rr_r[to] = a.rr_r[from], b.rr_g[to] = a.rr_g[from], b.rr_b[to] = a.rr_b[from];
+    b.eta[to] = a.eta[from], b.prev_pdf[to] = a.prev_pdf[from];
+    b.prev_px[to] = a.prev_px[from], b.prev_py[to] = a.prev_py[from], b.prev_pz[to] = a.prev_pz[from];
+    b.prev_delta[to] = a.prev_delta[from];
+    b.state[to] = a.state[from], b.inc[to] = a.inc[from];
+    b.seq[to] = a.seq[from];
+}
+
+/// Lane k's path state, as path_li holds it.
+PathState<RGB<float>> load_path(const Batch &b, int k) {
+    PathState<RGB<float>> path;
+    path.L = {b.Lr[k], b.Lg[k], b.Lb[k]};
+    path.beta = {b.br[k], b.bg[k], b.bb[k]};
+    path.beta_rr = {b.rr_r[k], b.rr_g[k], b.rr_b[k]};
+    path.eta = b.eta[k];
+    path.prev_pdf = b.prev_pdf[k];
+    path.prev_delta = b.prev_delta[k];
+    path.prev_p = {b.prev_px[k], b.prev_py[k], b.prev_pz[k]};
+    return path;
+}
+
+/// Store a path state, its next ray and its stream into lane k.
+void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &ray, const Sampler &sampler) {
+    b.Lr[k] = path.L[0], b.Lg[k] = path.L[1], b.Lb[k] = path.L[2];
+    b.br[k] = path.beta[0], b.bg[k] = path.beta[1], b.bb[k] = path.beta[2];
+    b.rr_r[k] = path.beta_rr[0], b.rr_g[k] = path.beta_rr[1], b.rr_b[k] = path.beta_rr[2];
+    b.eta[k] = path.eta;
+    b.prev_pdf[k] = path.prev_pdf;
+    b.prev_delta[k] = path.prev_delta;
+    b.prev_px[k] = path.prev_p.x, b.prev_py[k] = path.prev_p.y, b.prev_pz[k] = path.prev_p.z;
+    b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+    b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+    b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+    b.state[k] = sampler.pcg_state();
+    b.inc[k] = sampler.pcg_inc();
 }
 
 }  // namespace
@@ -271,7 +302,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                      const IntegratorSettings &cfg, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L) {
     const Scene &scene = ctx.scene;
-    static thread_local Batch b;  // 64 kB: no stack frame of its own
+    // The batch, and the vertices path_vertex() shades while the vector stage runs (80 kB
+    // each: no stack frame of their own).
+    static thread_local Batch b, side;
     // Camera rays, one sample at a time (Camera and Sampler's own code).
     for (int k = 0; k < n; ++k) {
         const WavefrontSample &s = samples[k];
@@ -297,7 +330,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // Trace each path's ray and add the emission it finds, MIS-weighted (path_li's code);
         // paths whose ray escaped, or that reached max_depth, end here.
         bool last = cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth;
-        int live = 0;
+        int live = 0, n_side = 0;
         for (int k = 0; k < n; ++k) {
             Ray ray;
             ray.o = {b.ox[k], b.oy[k], b.oz[k]};
@@ -319,8 +352,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 finish(k);
                 continue;
             }
+            int bsdf = scene.bsdf_at(si);
+            if (!ws.materials[bsdf].lanes) {
+                // Shade the vertex with path_li's own code; the lane waits aside.
+                PathState<RGB<float>> path = load_path(b, k);
+                Sampler sampler = Sampler::independent(b.state[k], b.inc[k]);
+                bool alive = path_vertex(ctx, cfg, depth, si, sampler, path, ray);
+                move_lane(b, k, side, n_side);
+                store_path(side, n_side, path, ray, sampler);
+                side.alive[n_side++] = alive;
+                continue;
+            }
             // The vertex goes on to the vector stage, in lane `live`.
-            if (live != k) move_lane(b, k, live);
+            if (live != k) move_lane(b, k, b, live);
             int j = live++;
             b.px[j] = si.p.x, b.py[j] = si.p.y, b.pz[j] = si.p.z;
             b.ex[j] = si.p_error.x, b.ey[j] = si.p_error.y, b.ez[j] = si.p_error.z;
@@ -330,14 +374,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.tx[j] = f.t.x, b.ty[j] = f.t.y, b.tz[j] = f.t.z;
             b.fx[j] = f.n.x, b.fy[j] = f.n.y, b.fz[j] = f.n.z;
             b.wix[j] = si.wi.x, b.wiy[j] = si.wi.y, b.wiz[j] = si.wi.z;
-            b.mat[j] = scene.bsdf_at(si);
+            b.mat[j] = bsdf;
+        }
+        if (ws.lights.size() == 1) {
+            vertex_stage<true>(b, live, ws, cfg, depth);
+        } else {
+            vertex_stage<false>(b, live, ws, cfg, depth);
+        }
+        // The vertices shaded aside rejoin the batch (their shadow rays are traced).
+        for (int i = 0; i < n_side; ++i) {
+            move_lane(side, i, b, live);
+            b.alive[live] = side.alive[i];
+            b.shadow[live++] = 0;
         }
         n = live;
-        if (ws.lights.size() == 1) {
-            vertex_stage<true>(b, n, ws, cfg, depth);
-        } else {
-            vertex_stage<false>(b, n, ws, cfg, depth);
-        }
         // Shadow rays; then the paths that ended hand back their radiance, the rest move up.
         live = 0;
         for (int k = 0; k < n; ++k) {
@@ -352,7 +402,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 finish(k);
                 continue;
             }
-            if (live != k) move_lane(b, k, live);
+            if (live != k) move_lane(b, k, b, live);
             ++live;
         }
         n = live;

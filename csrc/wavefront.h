@@ -9,11 +9,12 @@
 //   compact     the paths that ended hand their radiance back; the rest move to the front.
 // It computes what path_li computes, operation for operation, in the same order (with
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
-// images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). It runs
-// where every vertex can take the vector path: diffuse BSDFs with constant reflectances
-// (`twosided` or not), area emitters on meshes of at most 8 triangles, no environment, the
-// `independent` sampler and a perspective camera; other scenes, and the autodiff number types,
-// take path_li.
+// images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
+// vector stage shades diffuse BSDFs with constant reflectances (`twosided` or not) towards
+// area emitters on meshes of at most 8 triangles; vertices of other BSDFs are shaded by
+// path_vertex(), path_li's own code, in the trace stage. It runs for the `path` integrator
+// with the `independent` sampler, when every emitter is such a mesh and some BSDF is such a
+// diffuse one; other scenes, and the autodiff number types, take path_li.
 #pragma once
 
 #include <optional>
@@ -30,6 +31,7 @@ constexpr int WavefrontBatch = 256;
 /// The scene data the vector stages gather from, flattened per BSDF and per emitter.
 struct WavefrontScene {
     struct Material {
+        int lanes;  ///< 1: a constant diffuse BSDF, shaded in SIMD lanes; 0: by path_vertex
         Color3f reflectance;
         int twosided;  // (ints, not bools: the vector loop gathers them)
     };

@@ -114,14 +114,37 @@ def test04_cornell_box_takes_the_wavefront(monkeypatch):
     assert torch.equal(wavefront, scalar)
 
 
-@pytest.mark.parametrize("change", ["mirror", "texture", "cube light", "environment", "stratified",
+@pytest.mark.parametrize("extra", [
+    {"ball": {"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
+              "bsdf": {"type": "conductor"}}},
+    {"glass": {"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([-0.3, 0.25, 0.3]),
+               "bsdf": {"type": "dielectric"}},
+     "matte": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([0.4, 0.2, -0.3]),
+               "bsdf": {"type": "diffuse", "reflectance": 0.9}}},
+    {"rough": {"type": "cube", "to_world": tr.Transform.translate([0.2, 0.2, 0]).scale(0.2),
+               "bsdf": {"type": "roughconductor", "alpha": 0.3}},
+     "plastic": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, 0]),
+                 "bsdf": {"type": "roughplastic", "alpha": 0.2}}},
+    {"checks": {"type": "rectangle", "to_world": tr.Transform.translate([0, 0.01, 0]).rotate([1, 0, 0], -90).scale(0.5),
+                "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}}}},
+], ids=["mirror", "glass", "rough", "texture"])
+def test05_other_bsdfs_are_shaded_aside_with_path_li_code(tmp_path, monkeypatch, extra):
+    # Vertices whose BSDF the vector stage does not handle take path_vertex() in the trace
+    # stage, among diffuse ones that take the lanes: the image is still path_li's.
+    scene = room(tmp_path, {"max_depth": 6}, **extra)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=4)
+    assert torch.equal(wavefront, scalar)
+
+
+@pytest.mark.parametrize("change", ["no diffuse", "cube light", "environment", "stratified",
                                     "direct", "float64"])
-def test05_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
+def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
     d = room_dict(tmp_path)
-    if change == "mirror":
-        d["ball"] = {"type": "sphere", "radius": 0.2, "bsdf": {"type": "conductor"}}
-    elif change == "texture":
-        d["floor"]["bsdf"] = {"type": "diffuse", "reflectance": {"type": "checkerboard"}}
+    if change == "no diffuse":
+        for key in ("floor", "back", "side"):
+            d[key]["bsdf"] = {"type": "roughconductor"}
+        for key in ("quad", "strip", "panel"):
+            d[key]["bsdf"] = {"type": "conductor"}
     elif change == "cube light":  # 12 triangles: more than the vector stage's 8
         d["box"] = {"type": "cube", "to_world": tr.Transform.scale(0.1),
                     "emitter": {"type": "area", "radiance": 1.0}}
