@@ -51,7 +51,8 @@ struct WavefrontScene {
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else
-/// nothing. (The environment variable TORCH_RBPT_WAVEFRONT=0 turns it off, for comparisons.)
+/// nothing: always nothing in builds without AVX2, whose vector stage stays scalar. (The
+/// environment variable TORCH_RBPT_WAVEFRONT=0 turns it off, for comparisons.)
 std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &ctx,
                                               const IntegratorSettings &cfg, const Camera &camera);
 

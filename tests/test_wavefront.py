@@ -8,6 +8,9 @@ import torch_rbpt as tr
 from torch_rbpt import _C
 from conftest import SHARED, torch_threads
 
+pytestmark = pytest.mark.skipif(_C.build_isa not in ("avx2", "avx512"),
+                                reason="the wavefront needs an AVX2 build (PORTABLE=1 builds run path_li)")
+
 # A quad light with vertex normals (2 triangles) and a strip light of 6 triangles.
 QUAD_OBJ = """v -0.3 1.5 -0.3
 v 0.3 1.5 -0.3
