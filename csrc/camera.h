@@ -78,7 +78,12 @@ struct Camera {
     Ray ray_for(Vec2 pos, Vec2 u) const {
         if (type == CameraType::Orthographic) return orthographic_ray(pos);
         if (type == CameraType::ThinLens) return thin_lens_ray(pos, u);
-        // Perspective: through the pinhole at the origin.
+        return perspective_ray(pos);
+    }
+
+    /// The perspective sensor's ray through film position `pos`: through the pinhole at the
+    /// origin.
+    RBPT_INLINE Ray perspective_ray(Vec2 pos) const {
         float sx = 1.f - 2.f * (pos.x / float(film_width));
         float sy = 1.f - 2.f * (pos.y / float(film_height));
         // The local direction (x, y, 1), normalised once it is in world space (the axes need

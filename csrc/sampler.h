@@ -104,6 +104,15 @@ RBPT_INLINE uint32_t pcg32_next(uint64_t &state, uint64_t inc) {
     return (xorshifted >> rot) | (xorshifted << ((~rot + 1u) & 31));
 }
 
+/// The PCG32 stream of sample `sample` of the pixel whose stream key is `key` (PixelSeed).
+RBPT_INLINE void pcg32_seed(uint64_t key, uint64_t sample, uint64_t *state, uint64_t *inc) {
+    *inc = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u;
+    *state = 0;
+    pcg32_next(*state, *inc);
+    *state += mix64(key + sample);
+    pcg32_next(*state, *inc);
+}
+
 /// A float uniform in [0, 1) from 32 random bits (their top 24 as the mantissa).
 RBPT_INLINE float uniform_float(uint32_t bits) { return float(bits >> 8) * 0x1p-24f; }
 
@@ -240,13 +249,7 @@ private:
     Sampler() = default;
 
     /// The PCG32 stream of sample `sample` of the pixel whose stream key is `key`.
-    Sampler(uint64_t key, uint64_t sample) {
-        inc_ = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u;
-        state_ = 0;
-        next_u32();
-        state_ += mix64(key + sample);
-        next_u32();
-    }
+    Sampler(uint64_t key, uint64_t sample) { pcg32_seed(key, sample, &state_, &inc_); }
 
     float jitter() { return desc_->jitter ? uniform() : 0.5f; }
 

@@ -301,6 +301,27 @@ void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &r
     b.inc[k] = sampler.pcg_inc();
 }
 
+/// The perspective sensor's rays of samples [0, n) into the batch, and their film positions:
+/// what Sampler, Camera::sample_position and Camera::sample_ray compute, in SIMD lanes.
+void camera_stage(Batch &b, const WavefrontSample *samples, int n, const Camera &camera, Vec2 *pos) {
+    const Camera cam = camera;  // a local: the loop's stores cannot alias it
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        uint64_t state, inc;
+        pcg32_seed(samples[k].seed.stream, uint64_t(samples[k].s), &state, &inc);
+        float ux = uniform_float(pcg32_next(state, inc));
+        float uy = uniform_float(pcg32_next(state, inc));
+        Vec2 p{float(samples[k].px) + ux, float(samples[k].py) + uy};
+        pos[k].x = p.x, pos[k].y = p.y;
+        Ray ray = cam.perspective_ray(p);
+        b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+        b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+        b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+        b.state[k] = state;
+        b.inc[k] = inc;
+    }
+}
+
 }  // namespace
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
@@ -310,15 +331,24 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // The batch, and the vertices path_vertex() shades while the vector stage runs (80 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
-    // Camera rays, one sample at a time (Camera and Sampler's own code).
+    // Camera rays: the perspective sensor's in SIMD lanes (Sampler's stream set-up and its
+    // two uniforms, Camera::perspective_ray), the others one sample at a time.
+    if (camera.type == CameraType::Perspective) {
+        camera_stage(b, samples, n, camera, pos);
+    } else {
+        for (int k = 0; k < n; ++k) {
+            const WavefrontSample &s = samples[k];
+            Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
+            pos[k] = camera.sample_position(s.px, s.py, sampler);
+            Ray ray = camera.sample_ray(pos[k], sampler);
+            b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+            b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+            b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+            b.state[k] = sampler.pcg_state();
+            b.inc[k] = sampler.pcg_inc();
+        }
+    }
     for (int k = 0; k < n; ++k) {
-        const WavefrontSample &s = samples[k];
-        Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
-        pos[k] = camera.sample_position(s.px, s.py, sampler);
-        Ray ray = camera.sample_ray(pos[k], sampler);
-        b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
-        b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
-        b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
         b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
         b.br[k] = b.bg[k] = b.bb[k] = 1.f;
         b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
@@ -326,8 +356,6 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         b.prev_pdf[k] = 1.f;
         b.prev_delta[k] = 1;
         b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
-        b.state[k] = sampler.pcg_state();
-        b.inc[k] = sampler.pcg_inc();
         b.seq[k] = k;
     }
     auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
