@@ -90,6 +90,25 @@ def embree_include() -> Path | None:
     return next((d for d in dirs if (d / "embree3" / "rtcore.h").exists()), None)
 
 
+def compile_cached(prefix: str, cmd: list, deps: list, what: str, libs: list = ()) -> Path:
+    """Compile `cmd` (compiler, flags and sources, without -o) linking `libs` into
+    benchmarks/cache/<prefix>_<key>, the key hashing the command and the mtimes of `deps`; an
+    existing build with the same key is reused, older ones are removed."""
+    key = hashlib.sha1(repr([(str(p), p.stat().st_mtime_ns) for p in deps] + cmd + list(libs)).encode()).hexdigest()[:12]
+    exe = CACHE / f"{prefix}_{key}"
+    if exe.exists():
+        return exe
+    CACHE.mkdir(exist_ok=True)
+    for old in CACHE.glob(f"{prefix}_*"):
+        old.unlink()
+    full = cmd + ["-o", str(exe)] + list(libs)
+    print(f"compiling {exe.name} ...", flush=True)
+    r = subprocess.run(full, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"compiling {what} failed:\n{' '.join(full)}\n{r.stderr}")
+    return exe
+
+
 def compile_bench(with_embree: bool, cxx: str) -> Path:
     """Compile benchmarks/rays/bench_rays.cpp with our core; cached by the sources' mtimes."""
     sources = [HERE / "rays" / "bench_rays.cpp"] + [CSRC / s for s in CORE_SOURCES]
@@ -102,19 +121,8 @@ def compile_bench(with_embree: bool, cxx: str) -> Path:
         if "EMBREE_DIR" in os.environ:
             libs = [f"-L{Path(os.environ['EMBREE_DIR']) / 'lib'}"] + libs
         libs += ["-lembree3"]
-    key = hashlib.sha1(repr([(str(p), p.stat().st_mtime_ns) for p in deps] + cmd + libs).encode()).hexdigest()[:12]
-    exe = CACHE / f"bench_rays_{'embree' if with_embree else 'ours'}_{key}"
-    if exe.exists():
-        return exe
-    CACHE.mkdir(exist_ok=True)
-    for old in CACHE.glob(f"bench_rays_{'embree' if with_embree else 'ours'}_*"):
-        old.unlink()
-    full = cmd + [str(s) for s in sources] + ["-o", str(exe)] + libs
-    print(f"compiling {exe.name} ...", flush=True)
-    r = subprocess.run(full, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"compiling the ray benchmark failed:\n{' '.join(full)}\n{r.stderr}")
-    return exe
+    prefix = f"bench_rays_{'embree' if with_embree else 'ours'}"
+    return compile_cached(prefix, cmd + [str(s) for s in sources], deps, "the ray benchmark", libs)
 
 
 def load_bunny() -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,6 @@ writes benchmarks/results/simd_stages.csv. Exits non-zero if a stage's results d
 from __future__ import annotations
 
 import argparse
-import hashlib
 import os
 import re
 import subprocess
@@ -24,13 +23,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_rays import CXX_FLAGS, print_table, write_csv  # noqa: E402
+from bench_rays import CSRC, CXX_FLAGS, RESULTS, compile_cached, print_table, write_csv  # noqa: E402
 from machine import machine, simd  # noqa: E402
 
-ROOT = HERE.parent
-CSRC = ROOT / "csrc"
-CACHE = HERE / "cache"
-RESULTS = HERE / "results"
 SOURCE = HERE / "simd" / "simd_stages.cpp"
 # setup.py's release flags without its -march (chosen per build below).
 BASE_FLAGS = [f for f in CXX_FLAGS if not f.startswith("-march")]
@@ -39,20 +34,9 @@ ISAS = {"native": "-march=native", "avx2": "-march=x86-64-v3", "portable": "-mar
 
 def compile_stages(isa: str, cxx: str) -> Path:
     """Compile simd_stages.cpp for `isa`; cached by the sources' mtimes and the command."""
-    deps = [SOURCE] + sorted(CSRC.glob("*.h"))
     cmd = [cxx, *BASE_FLAGS, ISAS[isa], f"-I{CSRC}", str(SOURCE)]
-    key = hashlib.sha1(repr([(str(p), p.stat().st_mtime_ns) for p in deps] + cmd).encode()).hexdigest()[:12]
-    exe = CACHE / f"simd_stages_{isa}_{key}"
-    if exe.exists():
-        return exe
-    CACHE.mkdir(exist_ok=True)
-    for old in CACHE.glob(f"simd_stages_{isa}_*"):
-        old.unlink()
-    print(f"compiling {exe.name} ...", flush=True)
-    r = subprocess.run(cmd + ["-o", str(exe)], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"compiling the SIMD stage benchmark failed:\n{' '.join(cmd)}\n{r.stderr}")
-    return exe
+    return compile_cached(f"simd_stages_{isa}", cmd, [SOURCE] + sorted(CSRC.glob("*.h")),
+                          "the SIMD stage benchmark")
 
 
 def parse(text: str) -> list[dict]:

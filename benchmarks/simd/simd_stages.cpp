@@ -3,16 +3,18 @@
 // loop (one path after another, as the renderer shades today) and as an `omp simd` loop that
 // GCC vectorises (16 lanes with AVX-512, 8 with AVX2), from the same inline code and with the
 // extension's flags. Prints ns per lane for both and whether their results are bitwise equal.
-//   camera       Sampler's PCG32 stream set-up and two uniforms (sampler.h), a film position,
-//                the perspective ray (Camera::ray_for's perspective branch)
+//   camera       Sampler's PCG32 stream set-up and two uniforms (pcg32_seed, pcg32_next), a
+//                film position, the perspective ray (Camera::perspective_ray)
 //   interaction  a triangle hit (Geometry::interaction's mesh branch): vertex gathers, the
 //                point and its error bound, the interpolated normal, the shading frame, wi
 //   vertex       an emitter sample on a two-triangle area light (Geometry::sample_direction's
 //                mesh branch), the diffuse BSDF towards it with the MIS weight, a
 //                cosine-hemisphere BSDF sample and the next ray's origin (offset_p)
-// The math (Vec3, Frame, the warps, mix64, normalize) is the renderer's own headers; the
-// stage bodies repeat the branches named above without their other cases, since a loop is
-// vectorised only where every call in it is inlined and no branch leads out of line.
+// The math (Vec3, Frame, the warps, the PCG32 stream, the camera ray) is the renderer's own
+// headers; the other two stage bodies repeat the branches named above without their other
+// cases, since a loop is vectorised only where every call in it is inlined and no branch
+// leads out of line (the renderer's wavefront, csrc/wavefront.cpp, writes its vector stage
+// the same way).
 //
 // Built and run by benchmarks/bench_simd.py. Prints one line per stage:
 //   STAGE name=... scalar_ns=... simd_ns=... equal=0|1
@@ -59,39 +61,16 @@ RBPT_INLINE float mis(float a, float b) {
     return std::isfinite(w) ? w : 0.f;
 }
 
-// ---- camera: Sampler's stream set-up and two uniforms, Camera::ray_for ----
-RBPT_INLINE uint32_t pcg_next(uint64_t &state, uint64_t inc) {
-    uint64_t old = state;
-    state = old * 6364136223846793005ull + inc;
-    uint32_t xorshifted = uint32_t(((old >> 18u) ^ old) >> 27u);
-    uint32_t rot = uint32_t(old >> 59u);
-    return (xorshifted >> rot) | (xorshifted << ((~rot + 1u) & 31));
-}
-/// Camera::ray_for's perspective branch (the camera type is loop-invariant: a wavefront
-/// would pick the loop by type, as GCC does not unswitch a loop around out-of-line calls).
-RBPT_INLINE Ray perspective_ray(const Camera &cam, Vec2 pos) {
-    float sx = 1.f - 2.f * (pos.x / float(cam.film_width));
-    float sy = 1.f - 2.f * (pos.y / float(cam.film_height));
-    float x = sx * cam.tan_half_x, y = sy * cam.tan_half_y, len = std::sqrt(x * x + y * y + 1.f);
-    Ray ray;
-    ray.o = cam.origin;
-    ray.d = normalize(cam.axis_x * x + cam.axis_y * y + cam.axis_z);
-    ray.tmin = cam.near_clip * len;
-    ray.tmax = cam.far_clip * len;
-    return ray;
-}
+// ---- camera: Sampler's stream set-up and two uniforms, Camera::perspective_ray ----
 RBPT_INLINE void camera_stage(const Camera &cam, uint64_t key, const uint32_t *pixel, uint64_t *st,
                               Soa &s, size_t i) {
-    uint64_t sample = i;
-    uint64_t inc = (mix64(key ^ (sample * 0xD1B54A32D192ED03ull)) << 1u) | 1u, state = 0;
-    pcg_next(state, inc);
-    state += mix64(key + sample);
-    pcg_next(state, inc);
-    float ux = float(pcg_next(state, inc) >> 8) * 0x1p-24f;
-    float uy = float(pcg_next(state, inc) >> 8) * 0x1p-24f;
+    uint64_t state, inc;
+    pcg32_seed(key, i, &state, &inc);
+    float ux = uniform_float(pcg32_next(state, inc));
+    float uy = uniform_float(pcg32_next(state, inc));
     st[i] = state;
     Vec2 pos{float(pixel[i] & 0xffff) + ux, float(pixel[i] >> 16) + uy};
-    Ray r = perspective_ray(cam, pos);
+    Ray r = cam.perspective_ray(pos);
     s.a[OX][i] = r.o.x, s.a[OY][i] = r.o.y, s.a[OZ][i] = r.o.z;
     s.a[DX][i] = r.d.x, s.a[DY][i] = r.d.y, s.a[DZ][i] = r.d.z;
     s.a[TMIN][i] = r.tmin, s.a[TMAX][i] = r.tmax;
