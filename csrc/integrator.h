@@ -78,6 +78,16 @@ struct PathState {
     Vec3 prev_p;
 };
 
+/// The emission of emitter `e` that a path of throughput `beta` found at `si` (or, for the
+/// environment, by escaping), MIS-weighted against the emitter sampling of its previous vertex
+/// (at prev_p, where the BSDF sample had density prev_pdf, or was a delta one).
+template <typename S>
+RBPT_INLINE S emission_found(const RenderContext<S> &ctx, const Emitter &e, const SurfaceInteraction &si,
+                             const S &beta, bool prev_delta, float prev_pdf, const Vec3 &prev_p) {
+    float em_pdf = prev_delta ? 0.f : emitter_pdf(ctx, e, prev_p, si);
+    return beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(prev_pdf, em_pdf));
+}
+
 /// path_li's work at the surface vertex `si` of depth `depth`, after the emission found
 /// there: the emitter sample and its shadow ray, the BSDF sample for the next ray (into
 /// `ray`) and Russian roulette. Returns whether the path goes on. (The wavefront runs it for
@@ -144,11 +154,9 @@ S path_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray, S
         if (!last) emitter = scene.emitter_at(si);
 
         // Add emission the ray found, MIS-weighted against emitter sampling at the last vertex.
-        if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
-            const Emitter &e = scene.emitters[emitter];
-            float em_pdf = path.prev_delta ? 0.f : emitter_pdf(ctx, e, path.prev_p, si);
-            path.L += path.beta * emitter_eval<S>(ctx, e, si) * real_t<S>(mis_weight(path.prev_pdf, em_pdf));
-        }
+        if (emitter >= 0 && !(cfg.hide_emitters && depth == 0))
+            path.L += emission_found(ctx, scene.emitters[emitter], si, path.beta, path.prev_delta,
+                                     path.prev_pdf, path.prev_p);
 
         // Stop when the ray escaped or the next vertex would exceed max_depth.
         if (!si.valid || last) break;

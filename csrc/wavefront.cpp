@@ -107,7 +107,8 @@ RBPT_INLINE Vec3 offset_p(const Batch &b, int k, const Vec3 &d) {
     return {round_away(o.x, offset.x), round_away(o.y, offset.y), round_away(o.z, offset.z)};
 }
 
-/// The next `count` numbers of lane k's stream where `draw` holds, as Sampler::uniform.
+/// The next number of lane k's stream, as Sampler::uniform; the stream advances only where
+/// `draw` holds.
 RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     uint64_t state = b.state[k];
     float u = uniform_float(pcg32_next(state, b.inc[k]));
@@ -328,7 +329,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                      const IntegratorSettings &cfg, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L) {
     const Scene &scene = ctx.scene;
-    // The batch, and the vertices path_vertex() shades while the vector stage runs (80 kB
+    // The batch, and the vertices path_vertex() shades while the vector stage runs (64 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
     // Camera rays: the perspective sensor's in SIMD lanes (Sampler's stream set-up and its
@@ -374,11 +375,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             SurfaceInteraction si = last ? scene.intersect_emitter(ray, &emitter) : scene.intersect(ray);
             if (!last) emitter = scene.emitter_at(si);
             if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
-                const Emitter &e = scene.emitters[emitter];
-                Vec3 prev_p{b.prev_px[k], b.prev_py[k], b.prev_pz[k]};
-                float em_pdf = b.prev_delta[k] ? 0.f : emitter_pdf(ctx, e, prev_p, si);
-                RGB<float> beta(b.br[k], b.bg[k], b.bb[k]);
-                RGB<float> Le = beta * emitter_eval<RGB<float>>(ctx, e, si) * mis_weight(b.prev_pdf[k], em_pdf);
+                RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                                               b.prev_delta[k] != 0, b.prev_pdf[k],
+                                               Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                 b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
             }
             if (!si.valid || last) {
