@@ -22,9 +22,13 @@ portable = os.environ.get("PORTABLE", "0") == "1"
 march = os.environ.get("MARCH") or "native"
 link_flags = ["-fopenmp"]
 if sanitize:
-    # Assertions stay on: the sanitized build is the one that looks for bugs.
+    # Assertions stay on: the sanitized build is the one that looks for bugs. It targets the
+    # machine like the release build (below), so that it runs the same code paths (the
+    # wavefront needs AVX2), and contracts no multiply-adds, so that its images are those of
+    # the release build's arithmetic.
     sanitizers = ["-fsanitize=address,undefined", "-fno-sanitize-recover=undefined"]
-    cxx_flags += sanitizers + ["-fno-omit-frame-pointer", "-g", "-O1"]
+    cxx_flags += sanitizers + ["-fno-omit-frame-pointer", "-g", "-O1", "-ffp-contract=off"]
+    cxx_flags += [] if portable else [f"-march={march}"]
     link_flags += sanitizers
 elif debug:
     cxx_flags += ["-O0", "-g"]
