@@ -383,17 +383,15 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
     for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
         uint64_t rays_before = rays_traced, dropped = 0;
         Film::Block block = film.block(tx, ty);
+        bool traced = false;  // by the wavefront
         if constexpr (std::is_same_v<S, RGB<float>>) {
             if (wavefront) {
                 dropped = splat_tile_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx, ty, film, block);
-                film.commit(tx, ty, std::move(block));
-                rays += rays_traced - rays_before;
-                nonfinite += dropped;
-                return;
+                traced = true;
             }
         }
-        for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
-                               [&](int px, int py, uint64_t key) {
+        if (!traced) for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
+                                            [&](int px, int py, uint64_t key) {
             PixelSeed seed(req.seed, key);
             for (int s = 0; s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
