@@ -22,7 +22,6 @@ benchmarks/results/threads_memory.csv.
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import os
@@ -36,7 +35,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import machine, simd, status_mb  # noqa: E402
+from machine import machine, simd, status_mb, write_csv  # noqa: E402
 
 ROOT = HERE.parent
 CSRC = ROOT / "csrc"
@@ -69,16 +68,6 @@ def print_table(headers: list[str], rows: list[list], aligns: str | None = None)
     print("  ".join("-" * w for w in widths))
     for r in cells:
         print(fmt(r))
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}")
 
 
 # ---- 1. Rays against Embree ----------------------------------------------------------------

@@ -23,8 +23,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_rays import CSRC, CXX_FLAGS, RESULTS, compile_cached, print_table, write_csv  # noqa: E402
-from machine import machine, simd  # noqa: E402
+from bench_rays import CSRC, CXX_FLAGS, RESULTS, compile_cached, print_table  # noqa: E402
+from machine import machine, simd, write_csv  # noqa: E402
 
 SOURCE = HERE / "simd" / "simd_stages.cpp"
 # setup.py's release flags without its -march (chosen per build below).

@@ -24,7 +24,6 @@ run its kernels are loaded, not compiled. Writes benchmarks/results/tutorial.csv
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import json
 import os
@@ -35,7 +34,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import cpu_model  # noqa: E402
+from machine import cpu_model, write_csv  # noqa: E402
 import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
@@ -203,15 +202,9 @@ def main(argv=None) -> list:
     else:
         print(f"Mitsuba 3 comparison skipped; {mitsuba_ref.INSTALL_HINT}.")
     print(f"true {KEY} = {TRUTH}")
-    fields = []
     for r in rows:
         r.update(header, res=cfg["res"], ref_spp=cfg["ref_spp"], spp=cfg["spp"], iterations=cfg["iterations"])
-        fields += [k for k in r if k not in fields]
-    with open(out / "tutorial.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote tutorial.csv to {out}")
+    write_csv(out / "tutorial.csv", rows)
     return rows
 
 

@@ -17,7 +17,6 @@ the estimator, which Mitsuba's `path` shares).
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_error_time import SCENES, film_size  # noqa: E402
-from machine import machine  # noqa: E402
+from machine import machine, write_csv  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 
@@ -66,12 +65,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         rows.append(r)
         print(f"{name:12s} {r['variance']:10.3g} {r['emitters_seen']:14.0%} {r['direct']:8.0%} {r['longer']:8.0%}",
               flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "variance.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote variance.csv to {args.out}")
+    write_csv(args.out / "variance.csv", rows)
     return rows
 
 

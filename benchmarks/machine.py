@@ -1,9 +1,11 @@
 """The machine a benchmark ran on, for the header of every table and plot."""
 from __future__ import annotations
 
+import csv
 import datetime
 import os
 import platform
+from pathlib import Path
 
 
 def _cpuinfo() -> tuple:
@@ -53,3 +55,17 @@ def machine() -> str:
     return (f"{cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__} "
             f"({torch.get_num_threads()} threads), {platform.system()}, "
             f"{datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}")
+
+
+def write_csv(path: Path, rows: list) -> None:
+    """Write `rows` (dicts) to the CSV file `path`, its columns the rows' keys in order of first
+    appearance, and say so."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+    root = Path(__file__).resolve().parent.parent
+    print(f"wrote {path.relative_to(root) if path.resolve().is_relative_to(root) else path}")
