@@ -21,10 +21,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     WavefrontScene ws;
     bool any_lanes = false;
     for (const BSDF &b : scene.bsdfs) {
-        const TextureRef &r = b.reflectance;
-        bool lanes = b.type == BSDFType::Diffuse && r.texture < 0 && r.attribute < 0 && r.param >= 0;
+        bool lanes = b.type == BSDFType::Diffuse;
         any_lanes = any_lanes || lanes;
-        ws.materials.push_back({lanes, lanes ? ctx.params.spectrum(r.param) : Color3f(0.f), b.twosided});
+        ws.materials.push_back({lanes, b.twosided});
     }
     if (!any_lanes) return std::nullopt;
     for (const Emitter &e : scene.emitters) {
@@ -70,6 +69,7 @@ struct Batch {
     float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B];
     float sx[B], sy[B], sz[B], tx[B], ty[B], tz[B], fx[B], fy[B], fz[B];  ///< shading frame s, t, n
     float wix[B], wiy[B], wiz[B];
+    float ar[B], ag[B], ab[B];  ///< the diffuse reflectance there
     int mat[B];
     int alive[B];  ///< whether the path goes on after this bounce's BSDF sample and roulette
     // The emitter sample's shadow ray and what it adds if nothing blocks it.
@@ -190,8 +190,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float up = wi.z > 0.f ? 1.f : 0.f;
         up = wo.z > 0.f ? up : 0.f;
         float cos_term = InvPi * wo.z;
-        Color3f f{up != 0.f ? m.reflectance.v[0] * cos_term : 0.f, up != 0.f ? m.reflectance.v[1] * cos_term : 0.f,
-                  up != 0.f ? m.reflectance.v[2] * cos_term : 0.f};
+        Color3f f{up != 0.f ? b.ar[k] * cos_term : 0.f, up != 0.f ? b.ag[k] * cos_term : 0.f,
+                  up != 0.f ? b.ab[k] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
         // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
         // of f, which was selected, would again become a boolean select).
@@ -222,9 +222,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float bpdf = bwo.z > 0.f ? alive * cos_pdf : 0.f;  // (alive is 1 or 0: exact)
         alive = bpdf > 0.f ? alive : 0.f;
         bwo.z = bwo.z * side;
-        const Color3f &weight = m.reflectance;
-        float br = b.br[k] * weight.v[0], bg = b.bg[k] * weight.v[1], bb = b.bb[k] * weight.v[2];
-        float rr_r = b.rr_r[k] * weight.v[0], rr_g = b.rr_g[k] * weight.v[1], rr_b = b.rr_b[k] * weight.v[2];
+        float br = b.br[k] * b.ar[k], bg = b.bg[k] * b.ag[k], bb = b.bb[k] * b.ab[k];
+        float rr_r = b.rr_r[k] * b.ar[k], rr_g = b.rr_g[k] * b.ag[k], rr_b = b.rr_b[k] * b.ab[k];
         float eta = b.eta[k] * 1.f;
         Vec3 dn = fs * bwo.x + ft * bwo.y + fn * bwo.z;
         Vec3 o = offset_p(b, k, dn);
@@ -406,6 +405,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.tx[j] = f.t.x, b.ty[j] = f.t.y, b.tz[j] = f.t.z;
             b.fx[j] = f.n.x, b.fy[j] = f.n.y, b.fz[j] = f.n.z;
             b.wix[j] = si.wi.x, b.wiy[j] = si.wi.y, b.wiz[j] = si.wi.z;
+            const BSDF &diffuse = scene.bsdfs[bsdf];
+            Color3f a = make_query(diffuse, ctx, bsdf, si).texture<RGB<float>>(diffuse.reflectance);
+            b.ar[j] = a.v[0], b.ag[j] = a.v[1], b.ab[j] = a.v[2];
             b.mat[j] = bsdf;
         }
         if (ws.lights.size() == 1) {

@@ -10,11 +10,12 @@
 // It computes what path_li computes, operation for operation, in the same order (with
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
-// vector stage shades diffuse BSDFs with constant reflectances (`twosided` or not) towards
-// area emitters on meshes of at most 8 triangles; vertices of other BSDFs are shaded by
-// path_vertex(), path_li's own code, in the trace stage. It runs for the `path` integrator
-// with the `independent` sampler, when every emitter is such a mesh and some BSDF is such a
-// diffuse one; other scenes, and the autodiff number types, take path_li.
+// vector stage shades diffuse BSDFs (`twosided` or not) towards area emitters on meshes of at
+// most 8 triangles; their reflectance (a constant, a texture or a mesh attribute) is looked up
+// in the trace stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own
+// code, in the trace stage. It runs for the `path` integrator with the `independent` sampler,
+// when every emitter is such a mesh and some BSDF is diffuse; other scenes, and the autodiff
+// number types, take path_li.
 #pragma once
 
 #include <optional>
@@ -31,8 +32,7 @@ constexpr int WavefrontBatch = 256;
 /// The scene data the vector stages gather from, flattened per BSDF and per emitter.
 struct WavefrontScene {
     struct Material {
-        int lanes;  ///< 1: a constant diffuse BSDF, shaded in SIMD lanes; 0: by path_vertex
-        Color3f reflectance;
+        int lanes;     ///< 1: a diffuse BSDF, shaded in SIMD lanes; 0: by path_vertex
         int twosided;  // (ints, not bools: the vector loop gathers them)
     };
     struct Light {
