@@ -69,8 +69,9 @@ inline Vec3 cross(const Vec3 &a, const Vec3 &b) {
     return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
 inline float squared_norm(const Vec3 &a) { return dot(a, a); }
-inline float norm(const Vec3 &a) { return std::sqrt(dot(a, a)); }
-inline Vec3 normalize(const Vec3 &a) { return a / norm(a); }
+RBPT_INLINE float norm(const Vec3 &a) { return std::sqrt(dot(a, a)); }
+// (Forced inline: the SIMD loops of wavefront.cpp that call them vectorise only if inlined.)
+RBPT_INLINE Vec3 normalize(const Vec3 &a) { return a / norm(a); }
 inline Vec3 vmin(const Vec3 &a, const Vec3 &b) {
     return {std::min(a.x, b.x), std::min(a.y, b.y), std::min(a.z, b.z)};
 }

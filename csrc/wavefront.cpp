@@ -21,11 +21,23 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     WavefrontScene ws;
     bool any_lanes = false;
     for (const BSDF &b : scene.bsdfs) {
-        bool lanes = b.type == BSDFType::Diffuse;
-        any_lanes = any_lanes || lanes;
-        ws.materials.push_back({lanes, b.twosided});
+        using L = WavefrontScene::Lane;
+        L lane = b.type == BSDFType::Diffuse ? L::Diffuse
+               : b.type == BSDFType::Conductor ? L::Mirror
+               : b.type == BSDFType::Dielectric ? L::Glass : L::Aside;
+        any_lanes = any_lanes || lane != L::Aside;
+        ws.any_delta = ws.any_delta || lane == L::Mirror || lane == L::Glass;
+        ws.materials.push_back({lane, b.twosided, b.eta});
     }
     if (!any_lanes) return std::nullopt;
+    for (const Triangle &tri : scene.geometry.triangles) {
+        using F = WavefrontScene::ShapeFlag;
+        const Shape &shape = scene.geometry.shapes[tri.shape];
+        ws.triangle_flags.push_back((shape.has_normals ? F::HasNormals : 0) | (shape.flip_normals ? F::FlipNormals : 0) |
+                                    (shape.needs_uv ? F::NeedsUV : 0) | (shape.has_uvs ? F::HasUVs : 0));
+        ws.any_normals = ws.any_normals || shape.has_normals;
+        ws.any_uv = ws.any_uv || shape.needs_uv;
+    }
     for (const Emitter &e : scene.emitters) {
         if (e.type != EmitterType::Area) return std::nullopt;
         const Shape &shape = scene.geometry.shapes[e.shape];
@@ -65,11 +77,16 @@ struct Batch {
     int prev_delta[B];
     uint64_t state[B], inc[B];
     int seq[B];  ///< the sample's index in the caller's arrays
-    // The vertex found by this bounce's ray (SurfaceInteraction's fields).
+    // The closest hit of this bounce's ray (Hit's fields).
+    float ht[B], hu[B], hv[B];
+    uint32_t prim[B];
+    // The vertex there (SurfaceInteraction's fields).
     float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B];
     float sx[B], sy[B], sz[B], tx[B], ty[B], tz[B], fx[B], fy[B], fz[B];  ///< shading frame s, t, n
-    float wix[B], wiy[B], wiz[B];
-    float ar[B], ag[B], ab[B];  ///< the diffuse reflectance there
+    float wix[B], wiy[B], wiz[B], uvx[B], uvy[B];
+    int shade[B];  ///< whether the vertex stage shades it
+    float ar[B], ag[B], ab[B];  ///< the BSDF's reflectance there (diffuse or specular)
+    float tr[B], tg[B], tb[B];  ///< the dielectric's specular transmittance there
     int mat[B];
     int alive[B];  ///< whether the path goes on after this bounce's BSDF sample and roulette
     // The emitter sample's shadow ray and what it adds if nothing blocks it.
@@ -116,10 +133,13 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     return u;
 }
 
-/// The vector stage of a bounce for lanes [0, n): path_li from the emitter sample to the
-/// roulette, for diffuse vertices and mesh emitters. With OneLight (a scene of one emitter,
-/// the common case) the light's data is the same in every lane: loads, not gathers.
-template <bool OneLight>
+/// The vector stage of a bounce for the lanes [0, n) marked `shade`: path_li from the emitter
+/// sample to the roulette. It runs over all lanes, unmasked, and sets `alive` and `shadow`
+/// only where it shades: the caller restores the lanes shaded aside, and the others have
+/// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
+/// same in every lane: loads, not gathers. Delta: whether some lanes are mirrors or
+/// dielectrics (which sample no emitter).
+template <bool OneLight, bool Delta>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -135,16 +155,23 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
+        const float shade = b.shade[k] != 0 ? 1.f : 0.f;
+        // The BSDF: diffuse (which samples an emitter), a mirror or a dielectric.
+        using L = WavefrontScene::Lane;
+        const float diffuse = !Delta || m.lane == L::Diffuse ? 1.f : 0.f;
+        const float mirror = Delta && m.lane == L::Mirror ? 1.f : 0.f;
+        const float smooth = shade * diffuse;
+        const bool draw_emitter = !Delta || diffuse != 0.f;
         Vec3 p{b.px[k], b.py[k], b.pz[k]};
         // The shading frame (its to_local and to_world written out: a Frame assigned in the
         // loop would become an array per lane, which stops the vectoriser).
         Vec3 fs{b.sx[k], b.sy[k], b.sz[k]}, ft{b.tx[k], b.ty[k], b.tz[k]}, fn{b.fx[k], b.fy[k], b.fz[k]};
 
         // Sample an emitter (emitter_sample: one chosen uniformly, u.x reused) and a point on
-        // its mesh (Geometry::sample_direction).
+        // its mesh (Geometry::sample_direction), at diffuse vertices (BSDF::smooth).
         Vec2 u;
-        u.x = next_1d(b, k, true);
-        u.y = next_1d(b, k, true);
+        u.x = next_1d(b, k, draw_emitter);
+        u.y = next_1d(b, k, draw_emitter);
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
         const WavefrontScene::Light &light = lights[index];
@@ -169,7 +196,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float pdf = abs_cos > 0.f ? area_pdf : 0.f;
         // A sample: emitter_sample's test pdf > 0 (sample_direction's pdf is zero at distance
         // zero) and d facing the light's front.
-        float sampled = dist != 0.f ? 1.f : 0.f;
+        float sampled = dist != 0.f ? smooth : 0.f;
         sampled = abs_cos > 0.f ? sampled : 0.f;
         sampled = area_pdf > 0.f ? sampled : 0.f;
         sampled = dot(d, ln) < 0.f ? sampled : 0.f;
@@ -211,27 +238,59 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.sdx[k] = sd.x, b.sdy[k] = sd.y, b.sdz[k] = sd.z;
         b.stmax[k] = sdist * (1.f - ShadowEpsilon);
 
-        // Sample the BSDF for the next ray (bsdf_sample: cosine-weighted, in the flipped frame).
-        next_1d(b, k, true);  // u1: unused by the diffuse BSDF
+        // Sample the BSDF for the next ray (bsdf_sample, in the flipped frame).
+        float u1 = next_1d(b, k, true);
         Vec2 u2;
         u2.x = next_1d(b, k, true);
         u2.y = next_1d(b, k, true);
-        Vec3 bwo = warp::square_to_cosine_hemisphere(u2);
-        float cos_pdf = warp::square_to_cosine_hemisphere_pdf(bwo);
-        float alive = wi.z > 0.f ? 1.f : 0.f;  // DiffuseBSDF::sample's tests, then the roulette's
-        float bpdf = bwo.z > 0.f ? alive * cos_pdf : 0.f;  // (alive is 1 or 0: exact)
-        alive = bpdf > 0.f ? alive : 0.f;
+        // Diffuse: cosine-weighted (DiffuseBSDF::sample's tests: wi and wo above the surface).
+        Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
+        float cos_pdf = warp::square_to_cosine_hemisphere_pdf(cos_wo);
+        float up_in = wi.z > 0.f ? 1.f : 0.f;
+        float diffuse_pdf = cos_wo.z > 0.f ? up_in * cos_pdf : 0.f;  // (up_in is 1 or 0: exact)
+        // The mirror's and the dielectric's reflection.
+        Vec3 reflected{wi.x * -1.f, wi.y * -1.f, wi.z};
+        // The dielectric: reflection or refraction, chosen by u1 against the Fresnel
+        // reflectance (fresnel_dielectric with selects for its early returns).
+        float cos_i = wi.z, eta = m.eta;
+        float outside = cos_i >= 0.f ? 1.f : 0.f;
+        float rcp_eta = 1.f / eta;
+        float eta_it = outside != 0.f ? eta : rcp_eta, eta_ti = outside != 0.f ? rcp_eta : eta;
+        float cos_t2 = 1.f - eta_ti * eta_ti * (1.f - cos_i * cos_i);
+        float ci = std::abs(cos_i), ct = std::sqrt(std::max(cos_t2, 0.f));
+        float cos_t = ct * (outside != 0.f ? -1.f : 1.f);
+        float a_s = (ci - eta_it * ct) / (ci + eta_it * ct);
+        float a_p = (ct - eta_it * ci) / (ct + eta_it * ci);
+        float r = 0.5f * (a_s * a_s + a_p * a_p);
+        r = ci == 0.f ? 1.f : r;
+        r = eta == 1.f ? 0.f : r;
+        float reflect = u1 <= r ? 1.f : 0.f;
+        Vec3 refracted{(eta_ti * -1.f) * wi.x, (eta_ti * -1.f) * wi.y, cos_t};
+        float glass_pdf = reflect != 0.f ? r : 1.f - r;
+        // The sample of this lane's BSDF: its direction, density and weight; whether it
+        // exists (a density above zero) and refracts (then the weight is the transmittance
+        // times eta_ti^2, and the path's eta changes).
+        float refract = diffuse + mirror != 0.f ? 0.f : 1.f - reflect;
+        Vec3 bwo = select(refract != 0.f, refracted, reflected);
+        bwo = select(diffuse != 0.f, cos_wo, bwo);
+        float bpdf = glass_pdf;
+        bpdf = mirror != 0.f ? (wi.z > 0.f ? 1.f : 0.f) : bpdf;
+        bpdf = diffuse != 0.f ? diffuse_pdf : bpdf;
+        float alive = bpdf > 0.f ? shade : 0.f;
         bwo.z = bwo.z * side;
-        float br = b.br[k] * b.ar[k], bg = b.bg[k] * b.ag[k], bb = b.bb[k] * b.ab[k];
-        float rr_r = b.rr_r[k] * b.ar[k], rr_g = b.rr_g[k] * b.ag[k], rr_b = b.rr_b[k] * b.ab[k];
-        float eta = b.eta[k] * 1.f;
+        float t2 = eta_ti * eta_ti;
+        float wr = refract != 0.f ? b.tr[k] * t2 : b.ar[k], wg = refract != 0.f ? b.tg[k] * t2 : b.ag[k];
+        float wb = refract != 0.f ? b.tb[k] * t2 : b.ab[k];
+        float br = b.br[k] * wr, bg = b.bg[k] * wg, bb = b.bb[k] * wb;
+        float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
+        float path_eta = b.eta[k] * (refract != 0.f ? eta_it : 1.f);
         Vec3 dn = fs * bwo.x + ft * bwo.y + fn * bwo.z;
         Vec3 o = offset_p(b, k, dn);
 
         // Russian roulette (path_li's): survival with the roulette throughput, capped.
         float beta_max = std::max(rr_r, std::max(rr_g, rr_b));
         alive = beta_max > 0.f ? alive : 0.f;
-        float q = std::min(beta_max * eta * eta, MaxSurvival);
+        float q = std::min(beta_max * path_eta * path_eta, MaxSurvival);
         float u_rr = next_1d(b, k, alive * roulette != 0.f);
         float dies = u_rr >= q ? roulette : 0.f;
         alive = dies != 0.f ? 0.f : alive;
@@ -246,10 +305,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.alive[k] = alive != 0.f;
         b.br[k] = br, b.bg[k] = bg, b.bb[k] = bb;
         b.rr_r[k] = rr_r, b.rr_g[k] = rr_g, b.rr_b[k] = rr_b;
-        b.eta[k] = eta;
+        b.eta[k] = path_eta;
         b.prev_px[k] = p.x, b.prev_py[k] = p.y, b.prev_pz[k] = p.z;
         b.prev_pdf[k] = bpdf;
-        b.prev_delta[k] = 0;
+        b.prev_delta[k] = diffuse != 0.f ? 0 : 1;
         b.ox[k] = o.x, b.oy[k] = o.y, b.oz[k] = o.z;
         b.dx[k] = dn.x, b.dy[k] = dn.y, b.dz[k] = dn.z;
         b.tmin[k] = 0.f;
@@ -322,15 +381,122 @@ void camera_stage(Batch &b, const WavefrontSample *samples, int n, const Camera 
     }
 }
 
+/// Geometry::interaction's triangle branch for the lanes [0, n) whose ray hit a triangle, in
+/// SIMD lanes. (Lanes that hit another shape, or nothing, compute the last triangle's
+/// numbers, which nothing reads: the shade stage completes their interactions.) Vertex normals and uv, whose
+/// gathers are most of its cost, only in scenes with meshes that have them (Normals, UV).
+template <bool Normals, bool UV>
+void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
+    const Triangle *triangles = g.triangles.data();
+    const Vec3 *positions = g.positions.data(), *normals = g.normals.data();
+    const Vec2 *uvs = g.uvs.data();
+    const int *flags = ws.triangle_flags.data();
+    const uint32_t n_triangles = uint32_t(g.triangles.size());
+    using F = WavefrontScene::ShapeFlag;
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        // (Signed 32-bit indices: GCC gathers with unsigned ones only through 64-bit indices,
+        // two instructions per vector, and for some gathers not at all.)
+        const int t = int(std::min(b.prim[k], n_triangles - 1));  // (a select would select addresses)
+        const Triangle &tri = triangles[t];
+        const int flag = flags[t];
+        const int v0 = int(tri.v[0]), v1 = int(tri.v[1]), v2 = int(tri.v[2]);
+        float b1 = b.hu[k], b2 = b.hv[k], b0 = 1.f - b1 - b2;
+        const Vec3 &p0 = positions[v0], &p1 = positions[v1], &p2 = positions[v2];
+        Vec3 p = p0 * b0 + p1 * b1 + p2 * b2;
+        Vec3 p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
+        // The shading normal: the vertex normals interpolated, or the face's; both flipped
+        // with flip_normals (as a product with -1: exact).
+        Vec3 face_n{tri.n.x, tri.n.y, tri.n.z}, ns = face_n;
+        if constexpr (Normals) {
+            Vec3 vn = normalize(normals[v0] * b0 + normals[v1] * b1 + normals[v2] * b2);
+            ns = select((flag & F::HasNormals) != 0, vn, face_n);
+        }
+        float sign = (flag & F::FlipNormals) != 0 ? -1.f : 1.f;
+        Vec3 gn = face_n * sign;
+        ns = ns * sign;
+        // uv: the vertices' texture coordinates, or the barycentrics, where a texture reads it.
+        if constexpr (UV) {
+            // (Interpolated before the select: loads under a condition become masked gathers,
+            // which GCC does not emit for AVX2.)
+            const Vec2 &t0 = uvs[v0], &t1 = uvs[v1], &t2 = uvs[v2];
+            float tu = t0.x * b0 + t1.x * b1 + t2.x * b2, tv = t0.y * b0 + t1.y * b1 + t2.y * b2;
+            float u = (flag & F::HasUVs) != 0 ? tu : b1;
+            float v = (flag & F::HasUVs) != 0 ? tv : b2;
+            b.uvx[k] = (flag & F::NeedsUV) != 0 ? u : 0.f;
+            b.uvy[k] = (flag & F::NeedsUV) != 0 ? v : 0.f;
+        } else {
+            b.uvx[k] = b.uvy[k] = 0.f;
+        }
+        // The shading frame (Frame's constructor, written out) and wi = to_local(-d).
+        float fsign = std::copysign(1.f, ns.z);
+        float fa = -1.f / (fsign + ns.z), fb = ns.x * ns.y * fa;
+        Vec3 fs{1.f + fsign * ns.x * ns.x * fa, fsign * fb, -fsign * ns.x};
+        Vec3 ft{fb, fsign + ns.y * ns.y * fa, -ns.y};
+        Vec3 wi{b.dx[k] * -1.f, b.dy[k] * -1.f, b.dz[k] * -1.f};
+        b.px[k] = p.x, b.py[k] = p.y, b.pz[k] = p.z;
+        b.ex[k] = p_error.x, b.ey[k] = p_error.y, b.ez[k] = p_error.z;
+        b.nx[k] = gn.x, b.ny[k] = gn.y, b.nz[k] = gn.z;
+        b.sx[k] = fs.x, b.sy[k] = fs.y, b.sz[k] = fs.z;
+        b.tx[k] = ft.x, b.ty[k] = ft.y, b.tz[k] = ft.z;
+        b.fx[k] = ns.x, b.fy[k] = ns.y, b.fz[k] = ns.z;
+        b.wix[k] = dot(wi, fs), b.wiy[k] = dot(wi, ft), b.wiz[k] = dot(wi, ns);
+    }
+}
+
+/// Lane k's surface interaction, from its columns.
+SurfaceInteraction load_interaction(const Batch &b, int k, const Geometry &g) {
+    SurfaceInteraction si;
+    si.valid = true;
+    si.t = b.ht[k];
+    si.p = {b.px[k], b.py[k], b.pz[k]};
+    si.p_error = {b.ex[k], b.ey[k], b.ez[k]};
+    si.n = {b.nx[k], b.ny[k], b.nz[k]};
+    si.sh_frame.s = {b.sx[k], b.sy[k], b.sz[k]};
+    si.sh_frame.t = {b.tx[k], b.ty[k], b.tz[k]};
+    si.sh_frame.n = {b.fx[k], b.fy[k], b.fz[k]};
+    si.uv = {b.uvx[k], b.uvy[k]};
+    si.wi = {b.wix[k], b.wiy[k], b.wiz[k]};
+    si.shape = int(g.shape_of(b.prim[k]));
+    si.tri = b.prim[k];
+    si.b1 = b.hu[k];
+    si.b2 = b.hv[k];
+    return si;
+}
+
+/// Store a surface interaction into lane k's columns.
+void store_interaction(Batch &b, int k, const SurfaceInteraction &si) {
+    b.px[k] = si.p.x, b.py[k] = si.p.y, b.pz[k] = si.p.z;
+    b.ex[k] = si.p_error.x, b.ey[k] = si.p_error.y, b.ez[k] = si.p_error.z;
+    b.nx[k] = si.n.x, b.ny[k] = si.n.y, b.nz[k] = si.n.z;
+    const Frame &f = si.sh_frame;
+    b.sx[k] = f.s.x, b.sy[k] = f.s.y, b.sz[k] = f.s.z;
+    b.tx[k] = f.t.x, b.ty[k] = f.t.y, b.tz[k] = f.t.z;
+    b.fx[k] = f.n.x, b.fy[k] = f.n.y, b.fz[k] = f.n.z;
+    b.wix[k] = si.wi.x, b.wiy[k] = si.wi.y, b.wiz[k] = si.wi.z;
+    b.uvx[k] = si.uv.x, b.uvy[k] = si.uv.y;
+}
+
+/// Lane k's ray.
+RBPT_INLINE Ray load_ray(const Batch &b, int k) {
+    Ray ray;
+    ray.o = {b.ox[k], b.oy[k], b.oz[k]};
+    ray.d = {b.dx[k], b.dy[k], b.dz[k]};
+    ray.tmin = b.tmin[k];
+    ray.tmax = b.tmax[k];
+    return ray;
+}
+
 }  // namespace
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &cfg, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L) {
     const Scene &scene = ctx.scene;
-    // The batch, and the vertices path_vertex() shades while the vector stage runs (64 kB
+    // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
+    static thread_local int side_lane[B];
     // Camera rays: the perspective sensor's in SIMD lanes (Sampler's stream set-up and its
     // two uniforms, Camera::perspective_ray), the others one sample at a time.
     if (camera.type == CameraType::Perspective) {
@@ -359,71 +525,102 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         b.seq[k] = k;
     }
     auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
+    const Geometry &g = scene.geometry;
     for (int depth = 0; n > 0; ++depth) {
-        // Trace each path's ray and add the emission it finds, MIS-weighted (path_li's code);
-        // paths whose ray escaped, or that reached max_depth, end here.
-        bool last = cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth;
-        int live = 0, n_side = 0;
+        if (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth) {
+            // The last vertex max_depth allows: only the emission each ray finds (path_li's).
+            for (int k = 0; k < n; ++k) {
+                int emitter;
+                SurfaceInteraction si = scene.intersect_emitter(load_ray(b, k), &emitter);
+                if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
+                    RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                                                   b.prev_delta[k] != 0, b.prev_pdf[k],
+                                                   Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
+                    b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+                }
+                finish(k);
+            }
+            break;
+        }
+        // Trace each path's ray to its closest hit.
         for (int k = 0; k < n; ++k) {
-            Ray ray;
-            ray.o = {b.ox[k], b.oy[k], b.oz[k]};
-            ray.d = {b.dx[k], b.dy[k], b.dz[k]};
-            ray.tmin = b.tmin[k];
-            ray.tmax = b.tmax[k];
-            int emitter;
-            SurfaceInteraction si = last ? scene.intersect_emitter(ray, &emitter) : scene.intersect(ray);
-            if (!last) emitter = scene.emitter_at(si);
-            if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
-                RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+            Hit hit = scene.closest_hit(load_ray(b, k));
+            b.ht[k] = hit.t, b.hu[k] = hit.u, b.hv[k] = hit.v;
+            b.prim[k] = hit.prim;
+        }
+        // Complete the interactions of the triangles hit, in lanes.
+        if (ws.any_normals) {
+            ws.any_uv ? interaction_stage<true, true>(b, n, g, ws) : interaction_stage<true, false>(b, n, g, ws);
+        } else {
+            ws.any_uv ? interaction_stage<false, true>(b, n, g, ws) : interaction_stage<false, false>(b, n, g, ws);
+        }
+        // Complete the other interactions, add the emission each ray found, MIS-weighted
+        // (path_li's code), and look up the diffuse reflectances; paths whose ray escaped end
+        // here, and vertices of other BSDFs are shaded with path_li's own code.
+        int n_side = 0;
+        for (int k = 0; k < n; ++k) {
+            b.shade[k] = 0, b.mat[k] = 0;
+            if (b.prim[k] == ~0u) continue;  // escaped (the wavefront's scenes have no environment)
+            SurfaceInteraction si;
+            if (!g.is_triangle(b.prim[k])) {
+                Hit hit;
+                hit.t = b.ht[k], hit.u = b.hu[k], hit.v = b.hv[k], hit.prim = b.prim[k];
+                si = g.interaction(load_ray(b, k), hit);
+                store_interaction(b, k, si);
+            }
+            const Shape &shape = g.shapes[g.shape_of(b.prim[k])];
+            if (shape.emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
+                if (!si.valid) si = load_interaction(b, k, g);
+                RGB<float> Le = emission_found(ctx, scene.emitters[shape.emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
                                                b.prev_delta[k] != 0, b.prev_pdf[k],
                                                Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                 b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
             }
-            if (!si.valid || last) {
-                finish(k);
-                continue;
-            }
-            int bsdf = scene.bsdf_at(si);
-            if (!ws.materials[bsdf].lanes) {
-                // Shade the vertex with path_li's own code; the lane waits aside.
+            const BSDF &bsdf = scene.bsdfs[shape.bsdf];
+            const WavefrontScene::Lane lane = WavefrontScene::Lane(ws.materials[shape.bsdf].lane);
+            if (lane == WavefrontScene::Aside) {
+                // Shade the vertex with path_li's own code, into the side batch: the vector
+                // stage overwrites the lane, which gets it back after.
+                if (!si.valid) si = load_interaction(b, k, g);
                 PathState<RGB<float>> path = load_path(b, k);
                 Sampler sampler = Sampler::independent(b.state[k], b.inc[k]);
-                bool alive = path_vertex(ctx, cfg, depth, si, sampler, path, ray);
-                move_lane(b, k, side, n_side);
+                Ray ray;
+                side.alive[n_side] = path_vertex(ctx, cfg, depth, si, sampler, path, ray);
                 store_path(side, n_side, path, ray, sampler);
-                side.alive[n_side++] = alive;
+                side.seq[n_side] = b.seq[k];
+                side_lane[n_side++] = k;
                 continue;
             }
-            // The vertex goes on to the vector stage, in lane `live`.
-            if (live != k) move_lane(b, k, b, live);
-            int j = live++;
-            b.px[j] = si.p.x, b.py[j] = si.p.y, b.pz[j] = si.p.z;
-            b.ex[j] = si.p_error.x, b.ey[j] = si.p_error.y, b.ez[j] = si.p_error.z;
-            b.nx[j] = si.n.x, b.ny[j] = si.n.y, b.nz[j] = si.n.z;
-            const Frame &f = si.sh_frame;
-            b.sx[j] = f.s.x, b.sy[j] = f.s.y, b.sz[j] = f.s.z;
-            b.tx[j] = f.t.x, b.ty[j] = f.t.y, b.tz[j] = f.t.z;
-            b.fx[j] = f.n.x, b.fy[j] = f.n.y, b.fz[j] = f.n.z;
-            b.wix[j] = si.wi.x, b.wiy[j] = si.wi.y, b.wiz[j] = si.wi.z;
-            const BSDF &diffuse = scene.bsdfs[bsdf];
-            Color3f a = make_query(diffuse, ctx, bsdf, si).texture<RGB<float>>(diffuse.reflectance);
-            b.ar[j] = a.v[0], b.ag[j] = a.v[1], b.ab[j] = a.v[2];
-            b.mat[j] = bsdf;
+            // The vector stage shades it, with the reflectance and transmittance looked up here.
+            auto lookup = [&](const TextureRef &r) {
+                if (r.attribute < 0)  // a constant or a texture at uv
+                    return eval_texture<RGB<float>>(r, ctx.textures, ctx.params, Vec2{b.uvx[k], b.uvy[k]});
+                if (!si.valid) si = load_interaction(b, k, g);
+                return make_query(bsdf, ctx, shape.bsdf, si).texture<RGB<float>>(r);
+            };
+            Color3f a = lookup(lane == WavefrontScene::Diffuse ? bsdf.reflectance : bsdf.specular_reflectance);
+            b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
+            if (lane == WavefrontScene::Glass) {
+                Color3f t = lookup(bsdf.specular_transmittance);
+                b.tr[k] = t.v[0], b.tg[k] = t.v[1], b.tb[k] = t.v[2];
+            }
+            b.mat[k] = shape.bsdf;
+            b.shade[k] = 1;
         }
+        // Shade the other vertices in lanes; then the vertices shaded aside return.
         if (ws.lights.size() == 1) {
-            vertex_stage<true>(b, live, ws, cfg, depth);
+            ws.any_delta ? vertex_stage<true, true>(b, n, ws, cfg, depth) : vertex_stage<true, false>(b, n, ws, cfg, depth);
         } else {
-            vertex_stage<false>(b, live, ws, cfg, depth);
+            ws.any_delta ? vertex_stage<false, true>(b, n, ws, cfg, depth) : vertex_stage<false, false>(b, n, ws, cfg, depth);
         }
-        // The vertices shaded aside rejoin the batch (their shadow rays are traced).
         for (int i = 0; i < n_side; ++i) {
-            move_lane(side, i, b, live);
-            b.alive[live] = side.alive[i];
-            b.shadow[live++] = 0;
+            const int k = side_lane[i];
+            move_lane(side, i, b, k);
+            b.alive[k] = side.alive[i];
+            b.shadow[k] = 0;
         }
-        n = live;
         // Shadow rays; then the paths that ended hand back their radiance, the rest move up.
-        live = 0;
+        int live = 0;
         for (int k = 0; k < n; ++k) {
             if (b.shadow[k]) {
                 Ray ray;

@@ -1,20 +1,26 @@
 // The `path` integrator for plain float renders, run over a batch of paths at a time so that
 // the shading of many paths runs in SIMD lanes (a wavefront). Each bounce is a few stages over
 // the batch, its live paths kept packed at the front of structure-of-arrays columns:
-//   trace       one path at a time: the ray cast, the surface interaction, the emission the
-//               ray found (Scene::intersect and the integrator's own emission code);
-//   vertex      in SIMD lanes: an emitter sample, the BSDF towards it with its MIS weight,
-//               the BSDF sample, Russian roulette and the next ray;
+//   trace       one path at a time: the ray cast (the BVH's closest hit);
+//   interaction in SIMD lanes: the surface interaction of the triangles hit;
+//   shade       one path at a time: the interaction of other shapes hit, the emission the
+//               ray found (the integrator's own code), a texture's reflectance, and the
+//               vertices whose BSDF the vector stage does not shade (path_vertex());
+//   vertex      in SIMD lanes, for the other vertices: an emitter sample, the BSDF towards
+//               it with its MIS weight, the BSDF sample, Russian roulette and the next ray;
 //   shadow      one path at a time: the shadow rays, adding the emission they see;
 //   compact     the paths that ended hand their radiance back; the rest move to the front.
+// Lanes stay in place from the trace to the shadow rays; the vertex stage leaves the lanes
+// it does not shade as they are.
 // It computes what path_li computes, operation for operation, in the same order (with
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
-// vector stage shades diffuse BSDFs (`twosided` or not) towards area emitters on meshes of at
-// most 8 triangles; their reflectance (a constant, a texture or a mesh attribute) is looked up
-// in the trace stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own
-// code, in the trace stage. It runs for the `path` integrator with the `independent` sampler,
-// when every emitter is such a mesh and some BSDF is diffuse; other scenes, and the autodiff
+// vector stage shades diffuse BSDFs (`twosided` or not), with their emitter samples on area
+// emitters on meshes of at most 8 triangles, and the smooth conductor and dielectric; their
+// reflectances and transmittances (constants, textures or mesh attributes) are looked up in
+// the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
+// in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
+// every emitter is such a mesh and some BSDF is one of those; other scenes, and the autodiff
 // number types, take path_li.
 #pragma once
 
@@ -31,9 +37,12 @@ constexpr int WavefrontBatch = 256;
 
 /// The scene data the vector stages gather from, flattened per BSDF and per emitter.
 struct WavefrontScene {
+    /// The BSDFs the vector stage shades (the others are shaded by path_vertex()).
+    enum Lane { Aside = 0, Diffuse = 1, Mirror = 2, Glass = 3 };
     struct Material {
-        int lanes;     ///< 1: a diffuse BSDF, shaded in SIMD lanes; 0: by path_vertex
+        int lane;      ///< a Lane: diffuse, conductor (a mirror), dielectric, or shaded aside
         int twosided;  // (ints, not bools: the vector loop gathers them)
+        float eta;     ///< the dielectric's int_ior / ext_ior
     };
     struct Light {
         Color3f radiance;
@@ -41,6 +50,11 @@ struct WavefrontScene {
         float area;
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
+    bool any_delta = false;           ///< whether some are mirrors or dielectrics
+    /// Per triangle, what its interactions read of its mesh (ShapeFlag bits).
+    enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
+    std::vector<int> triangle_flags;
+    bool any_normals = false, any_uv = false;  ///< of the meshes: vertex normals, uv read
     std::vector<Light> lights;        ///< per Scene::emitters
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t.
