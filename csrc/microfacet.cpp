@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <limits>
 
+#include "warp.h"
+
 namespace rbpt {
 
 float erfinv(float x) {
@@ -92,10 +94,7 @@ Vec2 VisibleNormalSampler::part_x(float u1) const {
 }
 
 Vec2 VisibleNormalSampler::part_y(float u2) const {
-    if (type_ == MicrofacetType::GGX || polar()) {
-        float phi = 2.f * Pi * u2;
-        return {std::cos(phi), std::sin(phi)};
-    }
+    if (type_ == MicrofacetType::GGX || polar()) return warp::cossin_2pi(u2);
     return {erfinv(2.f * u2 - 1.f), 0.f};
 }
 

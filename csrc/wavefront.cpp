@@ -20,15 +20,37 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     if (scene.environment >= 0 || scene.emitters.empty()) return std::nullopt;
     WavefrontScene ws;
     bool any_lanes = false;
-    for (const BSDF &b : scene.bsdfs) {
+    for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
         using L = WavefrontScene::Lane;
+        const BSDF &b = scene.bsdfs[i];
+        const BSDFState &state = ctx.bsdf_state[i];
+        // Rough BSDFs in lanes: GGX (Beckmann's visible normals take a Newton solve), and
+        // no tables' derivatives (float renders have none).
+        bool ggx = b.distribution == MicrofacetType::GGX;
         L lane = b.type == BSDFType::Diffuse ? L::Diffuse
                : b.type == BSDFType::Conductor ? L::Mirror
-               : b.type == BSDFType::Dielectric ? L::Glass : L::Aside;
+               : b.type == BSDFType::Dielectric ? L::Glass
+               : b.type == BSDFType::RoughConductor && ggx ? L::RoughMirror
+               : b.type == BSDFType::RoughPlastic && ggx && state.tables && !state.dtables ? L::RoughPlastic
+               : L::Aside;
         any_lanes = any_lanes || lane != L::Aside;
         ws.any_delta = ws.any_delta || lane == L::Mirror || lane == L::Glass;
-        ws.materials.push_back({lane, b.twosided, b.eta});
+        ws.any_rough = ws.any_rough || lane == L::RoughMirror || lane == L::RoughPlastic;
+        WavefrontScene::Material m{lane, b.twosided, b.eta, 0.f, b.nonlinear, 0.f, 0.f, 0,
+                                   lane == L::Diffuse ? 1.f : 0.f, lane == L::Mirror ? 1.f : 0.f,
+                                   lane == L::RoughMirror || lane == L::RoughPlastic ? 1.f : 0.f,
+                                   lane == L::RoughPlastic ? 1.f : 0.f};
+        if (lane == L::RoughMirror || lane == L::RoughPlastic) m.alpha = float(ctx.params.data[b.alpha][0]);
+        if (lane == L::RoughPlastic) {
+            m.specular_sampling_weight = state.specular_sampling_weight;
+            m.internal_reflectance = state.tables->internal_reflectance;
+            m.table = int(ws.tables.size());
+            ws.tables.insert(ws.tables.end(), state.tables->external_transmittance,
+                             state.tables->external_transmittance + RoughPlasticTables::Resolution);
+        }
+        ws.materials.push_back(m);
     }
+    if (ws.tables.empty()) ws.tables.assign(RoughPlasticTables::Resolution, 0.f);  // (gathered from in any case)
     if (!any_lanes) return std::nullopt;
     for (const Triangle &tri : scene.geometry.triangles) {
         using F = WavefrontScene::ShapeFlag;
@@ -85,8 +107,10 @@ struct Batch {
     float sx[B], sy[B], sz[B], tx[B], ty[B], tz[B], fx[B], fy[B], fz[B];  ///< shading frame s, t, n
     float wix[B], wiy[B], wiz[B], uvx[B], uvy[B];
     int shade[B];  ///< whether the vertex stage shades it
-    float ar[B], ag[B], ab[B];  ///< the BSDF's reflectance there (diffuse or specular)
-    float tr[B], tg[B], tb[B];  ///< the dielectric's specular transmittance there
+    // The BSDF's inputs there (see the shade stage): a reflectance, and a second one, or a
+    // transmittance.
+    float ar[B], ag[B], ab[B];
+    float tr[B], tg[B], tb[B];
     int mat[B];
     int alive[B];  ///< whether the path goes on after this bounce's BSDF sample and roulette
     // The emitter sample's shadow ray and what it adds if nothing blocks it.
@@ -133,13 +157,123 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     return u;
 }
 
+// ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling, the
+// Fresnel reflectance and roughplastic's tables, written with selects where the scalar code
+// returns early: the same operations as microfacet.h's and bsdfs.h's, so the same bits.
+
+/// microfacet_D for GGX.
+RBPT_INLINE float ggx_D(float alpha, const Vec3 &m) {
+    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
+    float a2 = alpha * alpha;
+    float t = xy2 / a2 + cos2;
+    float result = 1.f / (Pi * a2 * t * t);
+    result = result * m.z > 1e-20f ? result : 0.f;
+    return m.z <= 0.f ? 0.f : result;
+}
+
+/// smith_G1 for GGX.
+RBPT_INLINE float ggx_G1(float alpha, const Vec3 &v, const Vec3 &m) {
+    float xy2 = v.x * v.x + v.y * v.y;
+    float tan2 = xy2 / (v.z * v.z);
+    float g = 2.f / (1.f + std::sqrt(1.f + alpha * alpha * tan2));
+    g = xy2 == 0.f ? 1.f : g;
+    return dot(v, m) * v.z <= 0.f ? 0.f : g;
+}
+
+/// sample_visible_normal for GGX (VisibleNormalSampler's constructor, part_x, part_y and
+/// normal).
+RBPT_INLINE Vec3 ggx_visible_normal(float alpha, const Vec3 &wi, Vec2 u) {
+    Vec3 w = normalize(Vec3{alpha * wi.x, alpha * wi.y, wi.z});
+    float len2 = w.x * w.x + w.y * w.y;
+    float inv_len = 1.f / std::sqrt(len2);
+    Vec3 t1{len2 > 0.f ? (w.y * -1.f) * inv_len : 1.f, len2 > 0.f ? w.x * inv_len : 0.f,
+            len2 > 0.f ? 0.f * inv_len : 0.f};
+    Vec3 t2 = cross(w, t1);
+    float s = 0.5f * (1.f + w.z);
+    float r = std::sqrt(u.x);
+    Vec2 cs = warp::cossin_2pi(u.y);
+    float p1 = r * cs.x, p2 = r * cs.y;
+    p2 = (1.f - s) * safe_sqrt(1.f - p1 * p1) + s * p2;
+    Vec3 nh = t1 * p1 + t2 * p2 + w * safe_sqrt(1.f - p1 * p1 - p2 * p2);
+    return normalize(Vec3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
+}
+
+/// fresnel_dielectric's reflectance.
+RBPT_INLINE float fresnel_lane(float cos_i, float eta) {
+    float outside = cos_i >= 0.f ? 1.f : 0.f;
+    float rcp_eta = 1.f / eta;
+    float eta_it = outside != 0.f ? eta : rcp_eta, eta_ti = outside != 0.f ? rcp_eta : eta;
+    float cos_t2 = 1.f - eta_ti * eta_ti * (1.f - cos_i * cos_i);
+    float ci = std::abs(cos_i), ct = safe_sqrt(cos_t2);
+    float a_s = (ci - eta_it * ct) / (ci + eta_it * ct);
+    float a_p = (ct - eta_it * ci) / (ct + eta_it * ci);
+    float r = 0.5f * (a_s * a_s + a_p * a_p);
+    r = ci == 0.f ? 1.f : r;
+    return eta == 1.f ? 0.f : r;
+}
+
+/// RoughPlasticTables::transmittance of the table at `table`.
+RBPT_INLINE float transmittance(const float *tables, int table, float cos_theta) {
+    constexpr int N = RoughPlasticTables::Resolution;
+    float x = (cos_theta > 0.f ? std::min(cos_theta, 1.f) : 0.f) * float(N - 1);
+    int i = std::min(int(x), N - 2);
+    float t = x - float(i);
+    return tables[table + i] * (1.f - t) + tables[table + i + 1] * t;
+}
+
+/// RoughPlasticBSDF::specular_probability at incidence with transmittance t_i.
+RBPT_INLINE float specular_probability(const WavefrontScene::Material &m, float t_i) {
+    float ps = (1.f - t_i) * m.specular_sampling_weight;
+    float pd = t_i * (1.f - m.specular_sampling_weight);
+    return ps + pd > 0.f ? ps / (ps + pd) : 0.5f;
+}
+
+/// A rough lane's BSDF value (f |cos wo|) and density: RoughConductorBSDF::eval_pdf (with
+/// specular reflectance a) where `plastic` is 0, RoughPlasticBSDF::eval_pdf (diffuse
+/// reflectance a, specular reflectance s) where it is 1.
+struct RoughEval {
+    float r, g, b, pdf;
+};
+RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, const float *tables,
+                                 const Vec3 &wi, const Vec3 &wo, const float a[3], const float s[3]) {
+    float up = wi.z > 0.f ? 1.f : 0.f;
+    up = wo.z > 0.f ? up : 0.f;
+    Vec3 h = normalize(wi + wo);
+    float l = ggx_D(m.alpha, h) * ggx_G1(m.alpha, wi, h) / (4.f * wi.z);
+    float g = ggx_G1(m.alpha, wo, h);
+    // The conductor.
+    float lg = l * g;
+    float facing = dot(wi, h) > 0.f ? 1.f : 0.f;
+    facing = dot(wo, h) > 0.f ? facing : 0.f;
+    RoughEval e{a[0] * lg, a[1] * lg, a[2] * lg, facing != 0.f ? l : 0.f};
+    // The plastic: its specular lobe, and the diffuse base seen through the rough interface.
+    float spec = fresnel_lane(dot(wi, h), m.eta) * l * g;
+    float t_i = transmittance(tables, m.table, wi.z), t_o = transmittance(tables, m.table, wo.z);
+    float r_int = m.internal_reflectance;
+    float base = t_i * t_o * (InvPi / (m.eta * m.eta) * wo.z);
+    float d[3];
+    for (int c = 0; c < 3; ++c) {
+        float diff = m.nonlinear != 0 ? a[c] / (1.f - a[c] * r_int) : a[c] / (1.f - r_int);
+        d[c] = s[c] * spec + diff * base;
+    }
+    float ps = specular_probability(m, t_i);
+    float density = ps * l + (1.f - ps) * warp::square_to_cosine_hemisphere_pdf(wo);
+    e.r = plastic != 0.f ? d[0] : e.r, e.g = plastic != 0.f ? d[1] : e.g, e.b = plastic != 0.f ? d[2] : e.b;
+    e.pdf = plastic != 0.f ? density : e.pdf;
+    // Both: nothing unless wi and wo are above the surface.
+    e.r = up != 0.f ? e.r : 0.f, e.g = up != 0.f ? e.g : 0.f, e.b = up != 0.f ? e.b : 0.f;
+    e.pdf = up != 0.f ? e.pdf : 0.f;
+    return e;
+}
+
 /// The vector stage of a bounce for the lanes [0, n) marked `shade`: path_li from the emitter
 /// sample to the roulette. It runs over all lanes, unmasked, and sets `alive` and `shadow`
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
-/// same in every lane: loads, not gathers. Delta: whether some lanes are mirrors or
-/// dielectrics (which sample no emitter).
-template <bool OneLight, bool Delta>
+/// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
+/// dielectrics (which sample no emitter), whether some are rough; the code of the BSDFs a
+/// scene does not have is left out.
+template <bool OneLight, bool Delta, bool Rough>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -147,6 +281,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     const float *cdfs = ws.cdf.data();
     const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
     const Vec3 *face_normals = ws.face_normals.data();
+    const float *tables = ws.tables.data();
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
     // vectorise the boolean selects it makes of && chains and of booleans combined with
@@ -156,12 +291,13 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
         const float shade = b.shade[k] != 0 ? 1.f : 0.f;
-        // The BSDF: diffuse (which samples an emitter), a mirror or a dielectric.
-        using L = WavefrontScene::Lane;
-        const float diffuse = !Delta || m.lane == L::Diffuse ? 1.f : 0.f;
-        const float mirror = Delta && m.lane == L::Mirror ? 1.f : 0.f;
-        const float smooth = shade * diffuse;
-        const bool draw_emitter = !Delta || diffuse != 0.f;
+        // The BSDF: diffuse or rough (which sample an emitter), a mirror or a dielectric.
+        const float diffuse = Delta || Rough ? m.diffuse : 1.f;
+        const float mirror = Delta ? m.mirror : 0.f;
+        const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
+        const float smooth = shade * (diffuse + rough);
+        const bool draw_emitter = !Delta || diffuse + rough != 0.f;
+        const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
         Vec3 p{b.px[k], b.py[k], b.pz[k]};
         // The shading frame (its to_local and to_world written out: a Frame assigned in the
         // loop would become an array per lane, which stops the vectoriser).
@@ -205,7 +341,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Color3f ew{light.radiance.v[0] * inv_pdf, light.radiance.v[1] * inv_pdf, light.radiance.v[2] * inv_pdf};
         sampled = (ew.v[0] != 0.f) | (ew.v[1] != 0.f) | (ew.v[2] != 0.f) ? sampled : 0.f;  // not null
 
-        // The diffuse BSDF towards it (bsdf_eval_pdf, with twosided's flip) and its MIS weight.
+        // The BSDF towards it (bsdf_eval_pdf, with twosided's flip) and its MIS weight.
         Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
         Vec3 wo{dot(d, fs), dot(d, ft), dot(d, fn)};
         // The flip as a product with -1 (exact): a selected negation, compared later, would
@@ -217,9 +353,15 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float up = wi.z > 0.f ? 1.f : 0.f;
         up = wo.z > 0.f ? up : 0.f;
         float cos_term = InvPi * wo.z;
-        Color3f f{up != 0.f ? b.ar[k] * cos_term : 0.f, up != 0.f ? b.ag[k] * cos_term : 0.f,
-                  up != 0.f ? b.ab[k] * cos_term : 0.f};
+        Color3f f{up != 0.f ? a[0] * cos_term : 0.f, up != 0.f ? a[1] * cos_term : 0.f,
+                  up != 0.f ? a[2] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
+        if constexpr (Rough) {
+            RoughEval e = rough_eval(m, plastic, tables, wi, wo, a, s);
+            f.v[0] = rough != 0.f ? e.r : f.v[0], f.v[1] = rough != 0.f ? e.g : f.v[1];
+            f.v[2] = rough != 0.f ? e.b : f.v[2];
+            f_pdf = rough != 0.f ? e.pdf : f_pdf;
+        }
         // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
         // of f, which was selected, would again become a boolean select).
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
@@ -264,23 +406,36 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float r = 0.5f * (a_s * a_s + a_p * a_p);
         r = ci == 0.f ? 1.f : r;
         r = eta == 1.f ? 0.f : r;
-        float reflect = u1 <= r ? 1.f : 0.f;
+        float reflects = u1 <= r ? 1.f : 0.f;
         Vec3 refracted{(eta_ti * -1.f) * wi.x, (eta_ti * -1.f) * wi.y, cos_t};
-        float glass_pdf = reflect != 0.f ? r : 1.f - r;
+        float glass_pdf = reflects != 0.f ? r : 1.f - r;
         // The sample of this lane's BSDF: its direction, density and weight; whether it
         // exists (a density above zero) and refracts (then the weight is the transmittance
         // times eta_ti^2, and the path's eta changes).
-        float refract = diffuse + mirror != 0.f ? 0.f : 1.f - reflect;
+        float refract = diffuse + mirror + rough != 0.f ? 0.f : 1.f - reflects;
         Vec3 bwo = select(refract != 0.f, refracted, reflected);
         bwo = select(diffuse != 0.f, cos_wo, bwo);
         float bpdf = glass_pdf;
         bpdf = mirror != 0.f ? (wi.z > 0.f ? 1.f : 0.f) : bpdf;
         bpdf = diffuse != 0.f ? diffuse_pdf : bpdf;
+        float t2 = eta_ti * eta_ti;
+        float wr = refract != 0.f ? s[0] * t2 : a[0], wg = refract != 0.f ? s[1] * t2 : a[1];
+        float wb = refract != 0.f ? s[2] * t2 : a[2];
+        if constexpr (Rough) {
+            // Rough: the reflection about a visible GGX normal (roughplastic: where u1 picks
+            // the specular lobe, else the cosine-weighted direction), weighted by value / pdf.
+            Vec3 specular = reflect(wi, ggx_visible_normal(m.alpha, wi, u2));
+            float pick_base = u1 < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : plastic;
+            Vec3 rwo = select(pick_base != 0.f, cos_wo, specular);
+            RoughEval e = rough_eval(m, plastic, tables, wi, rwo, a, s);
+            float rpdf = wi.z > 0.f ? e.pdf : 0.f;
+            bwo = select(rough != 0.f, rwo, bwo);
+            bpdf = rough != 0.f ? rpdf : bpdf;
+            wr = rough != 0.f ? e.r / e.pdf : wr, wg = rough != 0.f ? e.g / e.pdf : wg;
+            wb = rough != 0.f ? e.b / e.pdf : wb;
+        }
         float alive = bpdf > 0.f ? shade : 0.f;
         bwo.z = bwo.z * side;
-        float t2 = eta_ti * eta_ti;
-        float wr = refract != 0.f ? b.tr[k] * t2 : b.ar[k], wg = refract != 0.f ? b.tg[k] * t2 : b.ag[k];
-        float wb = refract != 0.f ? b.tb[k] * t2 : b.ab[k];
         float br = b.br[k] * wr, bg = b.bg[k] * wg, bb = b.bb[k] * wb;
         float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
         float path_eta = b.eta[k] * (refract != 0.f ? eta_it : 1.f);
@@ -308,12 +463,27 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.eta[k] = path_eta;
         b.prev_px[k] = p.x, b.prev_py[k] = p.y, b.prev_pz[k] = p.z;
         b.prev_pdf[k] = bpdf;
-        b.prev_delta[k] = diffuse != 0.f ? 0 : 1;
+        b.prev_delta[k] = diffuse + rough != 0.f ? 0 : 1;
         b.ox[k] = o.x, b.oy[k] = o.y, b.oz[k] = o.z;
         b.dx[k] = dn.x, b.dy[k] = dn.y, b.dz[k] = dn.z;
         b.tmin[k] = 0.f;
         b.tmax[k] = Infinity;
     }
+}
+
+/// The instance of vertex_stage for a scene's emitters and BSDFs.
+using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
+template <bool OneLight, bool Delta>
+VertexStage vertex_stage_for(bool rough) {
+    return rough ? vertex_stage<OneLight, Delta, true> : vertex_stage<OneLight, Delta, false>;
+}
+template <bool OneLight>
+VertexStage vertex_stage_for(bool delta, bool rough) {
+    return delta ? vertex_stage_for<OneLight, true>(rough) : vertex_stage_for<OneLight, false>(rough);
+}
+VertexStage vertex_stage_for(const WavefrontScene &ws) {
+    return ws.lights.size() == 1 ? vertex_stage_for<true>(ws.any_delta, ws.any_rough)
+                                 : vertex_stage_for<false>(ws.any_delta, ws.any_rough);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
@@ -598,21 +768,21 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 if (!si.valid) si = load_interaction(b, k, g);
                 return make_query(bsdf, ctx, shape.bsdf, si).texture<RGB<float>>(r);
             };
-            Color3f a = lookup(lane == WavefrontScene::Diffuse ? bsdf.reflectance : bsdf.specular_reflectance);
+            // (a: diffuse and roughplastic `reflectance`, the conductors' and the dielectric's
+            // specular reflectance; t: the dielectric's transmittance, roughplastic's
+            // specular reflectance)
+            bool base = lane == WavefrontScene::Diffuse || lane == WavefrontScene::RoughPlastic;
+            Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
-            if (lane == WavefrontScene::Glass) {
-                Color3f t = lookup(bsdf.specular_transmittance);
+            if (lane == WavefrontScene::Glass || lane == WavefrontScene::RoughPlastic) {
+                Color3f t = lookup(lane == WavefrontScene::Glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
                 b.tr[k] = t.v[0], b.tg[k] = t.v[1], b.tb[k] = t.v[2];
             }
             b.mat[k] = shape.bsdf;
             b.shade[k] = 1;
         }
         // Shade the other vertices in lanes; then the vertices shaded aside return.
-        if (ws.lights.size() == 1) {
-            ws.any_delta ? vertex_stage<true, true>(b, n, ws, cfg, depth) : vertex_stage<true, false>(b, n, ws, cfg, depth);
-        } else {
-            ws.any_delta ? vertex_stage<false, true>(b, n, ws, cfg, depth) : vertex_stage<false, false>(b, n, ws, cfg, depth);
-        }
+        vertex_stage_for(ws)(b, n, ws, cfg, depth);
         for (int i = 0; i < n_side; ++i) {
             const int k = side_lane[i];
             move_lane(side, i, b, k);

@@ -15,8 +15,9 @@
 // It computes what path_li computes, operation for operation, in the same order (with
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
-// vector stage shades diffuse BSDFs (`twosided` or not), with their emitter samples on area
-// emitters on meshes of at most 8 triangles, and the smooth conductor and dielectric; their
+// vector stage shades diffuse BSDFs (`twosided` or not), the GGX roughconductor and
+// roughplastic, with their emitter samples on area emitters on meshes of at most 8
+// triangles, and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
@@ -37,12 +38,20 @@ constexpr int WavefrontBatch = 256;
 
 /// The scene data the vector stages gather from, flattened per BSDF and per emitter.
 struct WavefrontScene {
-    /// The BSDFs the vector stage shades (the others are shaded by path_vertex()).
-    enum Lane { Aside = 0, Diffuse = 1, Mirror = 2, Glass = 3 };
+    /// The BSDFs the vector stage shades (the others are shaded by path_vertex()): diffuse,
+    /// conductor (a mirror), dielectric, and the GGX roughconductor and roughplastic.
+    enum Lane { Aside = 0, Diffuse = 1, Mirror = 2, Glass = 3, RoughMirror = 4, RoughPlastic = 5 };
     struct Material {
-        int lane;      ///< a Lane: diffuse, conductor (a mirror), dielectric, or shaded aside
-        int twosided;  // (ints, not bools: the vector loop gathers them)
-        float eta;     ///< the dielectric's int_ior / ext_ior
+        int lane;       ///< a Lane
+        int twosided;   // (ints, not bools: the vector loop gathers them)
+        float eta;      ///< int_ior / ext_ior (dielectric, roughplastic)
+        float alpha;    ///< roughness (rough types)
+        int nonlinear;  ///< roughplastic
+        float specular_sampling_weight, internal_reflectance;  ///< roughplastic (BSDFState)
+        int table;      ///< roughplastic: its external transmittance in `tables`, 64 entries from here
+        /// The lane as flags (1 or 0) for the vector stage, which gathers them: GCC turns
+        /// comparisons of `lane` with several values into branches it does not vectorise.
+        float diffuse, mirror, rough, plastic;
     };
     struct Light {
         Color3f radiance;
@@ -51,6 +60,8 @@ struct WavefrontScene {
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
+    bool any_rough = false;           ///< whether some are rough
+    std::vector<float> tables;        ///< roughplastic tables (RoughPlasticTables), 64 per BSDF
     /// Per triangle, what its interactions read of its mesh (ShapeFlag bits).
     enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
     std::vector<int> triangle_flags;

@@ -137,15 +137,36 @@ def test04_cornell_box_takes_the_wavefront(monkeypatch):
                 "bsdf": {"type": "dielectric", "int_ior": 1.7,
                          "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]},
                          "specular_transmittance": {"type": "checkerboard", "to_uv": tr.Transform.scale([6, 3, 1])}}}},
+    {"gold": {"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
+              "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.2,
+                       "specular_reflectance": {"type": "rgb", "value": [1.0, 0.8, 0.4]}}},
+     "tilted": {"type": "rectangle", "to_world": tr.Transform.translate([0.6, 0.5, -0.5]).rotate([0, 1, 0], -40).scale(0.4),
+                "bsdf": {"type": "twosided", "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05,
+                                                      "specular_reflectance": {"type": "checkerboard"}}}},
+     "floor": {"type": "rectangle", "to_world": tr.Transform.rotate([1, 0, 0], -90).scale(2),
+               "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3, "int_ior": 1.6,
+                        "diffuse_reflectance": {"type": "checkerboard", "to_uv": tr.Transform.scale([4, 4, 1])}}},
+     "shiny": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.5, 0.2, -0.1]),
+               "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.08, "nonlinear": True,
+                        "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.8]},
+                        "specular_reflectance": 0.7}}},
     {"rough": {"type": "cube", "to_world": tr.Transform.translate([0.2, 0.2, 0]).scale(0.2),
                "bsdf": {"type": "roughconductor", "alpha": 0.3}},
      "plastic": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, 0]),
                  "bsdf": {"type": "roughplastic", "alpha": 0.2}}},
-], ids=["mirror", "glass", "textured delta", "rough"])
+    {"rough": {"type": "cube", "to_world": tr.Transform.translate([0.2, 0.2, 0]).scale(0.2),
+               "bsdf": {"type": "roughconductor", "alpha": 0.3}},
+     "plastic": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, 0]),
+                 "bsdf": {"type": "roughplastic", "alpha": 0.2}},
+     "glass": {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.4, 0.15, 0.4]),
+               "bsdf": {"type": "dielectric"}},
+     "satin": {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([-0.2, 0.15, 0.5]),
+               "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.4}}},
+], ids=["mirror", "glass", "textured delta", "ggx", "beckmann", "all kinds"])
 def test05_every_bsdf_gives_path_li_image(tmp_path, monkeypatch, extra):
-    # Mirrors and dielectrics (index-matched too, textured, twosided) are shaded in lanes
-    # with the diffuse vertices; rough BSDFs by path_vertex() in the shade stage. Either
-    # way the image is path_li's.
+    # Mirrors, dielectrics (index-matched too, textured, twosided) and GGX rough BSDFs are
+    # shaded in lanes with the diffuse vertices; Beckmann's by path_vertex() in the shade
+    # stage. Either way the image is path_li's.
     scene = room(tmp_path, {"max_depth": 6}, **extra)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=4)
     assert torch.equal(wavefront, scalar)
