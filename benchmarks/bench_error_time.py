@@ -50,7 +50,6 @@ brightest emitter sphere (values ~100); the relative error is the steadier metri
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import math
 import os
@@ -65,7 +64,7 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402
-from machine import cpu_model  # noqa: E402
+from machine import cpu_model, write_csv  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 from torch_rbpt.render import render_with_stats  # noqa: E402
@@ -392,30 +391,26 @@ def write_outputs(scenes: list[dict], info: dict, out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for sc in scenes:
+        ours = {r["spp"]: r for r in sc["ours_rows"]}
+        for renderer, scene_rows in (("torch_rbpt", sc["ours_rows"]), ("mitsuba", sc["mitsuba_rows"])):
+            for r in scene_rows:
+                o = ours.get(r["spp"])
+                rows.append({
+                    "scene": sc["name"], "width": sc["size"][0], "height": sc["size"][1],
+                    "renderer": renderer, "spp": r["spp"], "seconds": f"{r['seconds']:.6g}",
+                    "rmse": f"{r['rmse']:.6g}", "rel_error": f"{r['rel_error']:.6g}",
+                    "mrays_per_s": "" if not math.isfinite(r["mrays_per_s"]) else f"{r['mrays_per_s']:.4g}",
+                    "ours_seconds_at_equal_rmse": f"{r['ours_t_eq']:.6g}" if "ours_t_eq" in r else "",
+                    "eq_error_ratio": f"{r['eq_error_ratio']:.4g}" if "eq_error_ratio" in r else "",
+                    "eq_error_extrapolated": int(r["eq_error_extrapolated"]) if "eq_error_extrapolated" in r else "",
+                    "eq_spp_ratio": f"{o['seconds'] / r['seconds']:.4g}" if renderer == "mitsuba" and o else "",
+                    "repeats": sc["repeats"], "reference": sc["ref_name"], "cpu": info["cpu"],
+                    "cores": info["cores"], "torch_threads": info["torch_threads"],
+                    "mitsuba": info["mitsuba"], "date": info["date"]})
     csv_path = out / "error_time.csv"
-    fields = ["scene", "width", "height", "renderer", "spp", "seconds", "rmse", "rel_error",
-              "mrays_per_s", "ours_seconds_at_equal_rmse", "eq_error_ratio", "eq_error_extrapolated",
-              "eq_spp_ratio", "repeats", "reference", "cpu", "cores", "torch_threads", "mitsuba", "date"]
-    with open(csv_path, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=fields)
-        wr.writeheader()
-        for sc in scenes:
-            ours = {r["spp"]: r for r in sc["ours_rows"]}
-            for renderer, rows in (("torch_rbpt", sc["ours_rows"]), ("mitsuba", sc["mitsuba_rows"])):
-                for r in rows:
-                    o = ours.get(r["spp"])
-                    wr.writerow({
-                        "scene": sc["name"], "width": sc["size"][0], "height": sc["size"][1],
-                        "renderer": renderer, "spp": r["spp"], "seconds": f"{r['seconds']:.6g}",
-                        "rmse": f"{r['rmse']:.6g}", "rel_error": f"{r['rel_error']:.6g}",
-                        "mrays_per_s": "" if not math.isfinite(r["mrays_per_s"]) else f"{r['mrays_per_s']:.4g}",
-                        "ours_seconds_at_equal_rmse": f"{r['ours_t_eq']:.6g}" if "ours_t_eq" in r else "",
-                        "eq_error_ratio": f"{r['eq_error_ratio']:.4g}" if "eq_error_ratio" in r else "",
-                        "eq_error_extrapolated": int(r["eq_error_extrapolated"]) if "eq_error_extrapolated" in r else "",
-                        "eq_spp_ratio": f"{o['seconds'] / r['seconds']:.4g}" if renderer == "mitsuba" and o else "",
-                        "repeats": sc["repeats"], "reference": sc["ref_name"], "cpu": info["cpu"],
-                        "cores": info["cores"], "torch_threads": info["torch_threads"],
-                        "mitsuba": info["mitsuba"], "date": info["date"]})
+    write_csv(csv_path, rows)
 
     for sc in scenes:
         fig, ax = plt.subplots(figsize=(5.5, 4.5))
@@ -519,8 +514,8 @@ def main(argv=None) -> list[dict]:
     print("\nTimes: best of the repeats, warm (ours after an untimed 1 spp render; Mitsuba after "
           "an untimed render that compiled its JIT kernels), the two renderers taking turns render "
           "by render. Errors: mean over the repeats.")
-    csv_path = write_outputs(results, info, args.out)
-    print(f"wrote {csv_path}, {args.out / 'error_time.png'} and error_time_<scene>.png")
+    write_outputs(results, info, args.out)
+    print(f"wrote {args.out / 'error_time.png'} and error_time_<scene>.png")
     return results
 
 

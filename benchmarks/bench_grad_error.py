@@ -43,7 +43,6 @@ grad_reference_agreement.csv.
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import hashlib
 import json
@@ -60,7 +59,7 @@ import torch_rbpt as tr
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402  (benchmarks/mitsuba_ref.py; imports Mitsuba lazily)
-from machine import cpu_model  # noqa: E402
+from machine import cpu_model, write_csv  # noqa: E402
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 SCENES = HERE / "scenes"
@@ -423,19 +422,13 @@ def main(argv=None) -> dict:
                   f"{a['target_image_rel_diff']:15.4f}")
             if a["kind"] != "texture":
                 print(f"{'':13s} ours    {a['g_ours']}\n{'':13s} mitsuba {a['g_mitsuba']}")
-        with open(out / "grad_reference_agreement.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(agreement[0]) + list(header))
-            w.writeheader()
-            w.writerows([{**a, **header} for a in agreement])
+        write_csv(out / "grad_reference_agreement.csv", [{**a, **header} for a in agreement])
     elif not use_mi:
         print(f"\nMitsuba 3 comparison skipped ({why}); {mitsuba_ref.INSTALL_HINT}.")
 
-    with open(out / "grad_error.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(csv_rows[0]))
-        w.writeheader()
-        w.writerows(csv_rows)
+    write_csv(out / "grad_error.csv", csv_rows)
     plot(results, out, header)
-    print(f"\nwrote grad_error.csv, grad_error.png, grad_error_<kind>.png to {out}")
+    print(f"wrote grad_error.png, grad_error_<kind>.png to {out}")
     return {"rows": csv_rows, "agreement": agreement}
 
 

@@ -19,7 +19,6 @@ two more tables); Mitsuba's does not (its alpha gradient leaves out the interfac
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
@@ -31,7 +30,7 @@ import torch_rbpt as tr
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
-from machine import machine, status_mb  # noqa: E402
+from machine import machine, status_mb, write_csv  # noqa: E402
 SCENE = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 
 
@@ -182,15 +181,8 @@ def main(argv=None) -> None:
         print(f"{r['distribution']:12s} {r['step']:18s} {r['renderer']:11s} {r['same_alpha_ms']:15.1f} "
               f"{r['new_alpha_ms']:14.1f} {r['extra_ms']:10.1f}")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "gradients.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    with open(out / "roughplastic_alpha.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rough[0]))
-        w.writeheader()
-        w.writerows(rough)
+    write_csv(out / "gradients.csv", rows)
+    write_csv(out / "roughplastic_alpha.csv", rough)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ Mitsuba, it says what it skipped. Writes benchmarks/results/profile.csv.
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import json
 import os
@@ -39,7 +38,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_error_time import SCENES  # noqa: E402
-from machine import cpu_model  # noqa: E402
+from machine import cpu_model, write_csv  # noqa: E402
 
 MITSUBA_RAY_DSOS = ("libembree3", "sphere.so", "disk.so", "cylinder.so", "rectangle.so", "cube.so")
 MITSUBA_OTHER_DSOS = ("[JIT]", "libmitsuba", "libdrjit", "libnanothread", "libm.so", "ply.so",
@@ -155,13 +154,7 @@ def main() -> int:
                       f"{ours['seconds'] / mi['seconds']:6.2f} {mi['ray_share']:6.2f}", flush=True)
             else:
                 print(f"{name:12s} {ours['seconds']:8.3f} {100 * ours['ray_share']:6.1f}%", flush=True)
-    out = HERE / "results" / "profile.csv"
-    out.parent.mkdir(exist_ok=True)
-    with open(out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"wrote {out}")
+    write_csv(HERE / "results" / "profile.csv", rows)
     return 0
 
 

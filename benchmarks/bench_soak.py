@@ -12,7 +12,6 @@ benchmarks/results/soak.csv and soak.png (RSS against iteration).
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import sys
 import time
@@ -22,7 +21,7 @@ import torch
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import machine, status_mb  # noqa: E402
+from machine import machine, status_mb, write_csv  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 
@@ -77,11 +76,7 @@ def main() -> None:
             start = time.perf_counter()
 
     out = HERE / "results"
-    out.mkdir(exist_ok=True)
-    with open(out / "soak.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_csv(out / "soak.csv", rows)
 
     import matplotlib
     matplotlib.use("Agg")
@@ -107,7 +102,7 @@ def main() -> None:
     print(f"mean {sum(timed) / len(timed):.2f} ms/iteration after the warm-up")
     verdict = "flat" if growth < FLAT_MB else "GROWING"
     print(f"verdict: {verdict} (flat means under {FLAT_MB:g} MB growth after the warm-up)")
-    print(f"wrote {out / 'soak.csv'} and {out / 'soak.png'}")
+    print(f"wrote {out / 'soak.png'}")
 
 
 if __name__ == "__main__":
