@@ -60,6 +60,19 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.any_normals = ws.any_normals || shape.has_normals;
         ws.any_uv = ws.any_uv || shape.needs_uv;
     }
+    for (uint32_t s : scene.geometry.analytic) {
+        const Shape &shape = scene.geometry.shapes[s];
+        bool lanes = shape.kind == ShapeKind::Sphere && !shape.needs_uv;
+        ws.any_spheres = ws.any_spheres || lanes;
+        ws.sphere_lanes.push_back(lanes);
+        ws.sphere_center.push_back(shape.center);
+        ws.sphere_radius.push_back(shape.radius);
+        ws.sphere_sign.push_back(shape.flip_normals ? -1.f : 1.f);
+    }
+    if (ws.sphere_lanes.empty()) {  // (gathered from in any case)
+        ws.sphere_lanes.push_back(0), ws.sphere_center.push_back(Vec3()), ws.sphere_radius.push_back(1.f);
+        ws.sphere_sign.push_back(1.f);
+    }
     for (const Emitter &e : scene.emitters) {
         if (e.type != EmitterType::Area) return std::nullopt;
         const Shape &shape = scene.geometry.shapes[e.shape];
@@ -106,6 +119,7 @@ struct Batch {
     float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B];
     float sx[B], sy[B], sz[B], tx[B], ty[B], tz[B], fx[B], fy[B], fz[B];  ///< shading frame s, t, n
     float wix[B], wiy[B], wiz[B], uvx[B], uvy[B];
+    int done[B];   ///< whether the interaction stage completed the interaction
     int shade[B];  ///< whether the vertex stage shades it
     // The BSDF's inputs there (see the shade stage): a reflectance, and a second one, or a
     // transmittance.
@@ -551,17 +565,22 @@ void camera_stage(Batch &b, const WavefrontSample *samples, int n, const Camera 
     }
 }
 
-/// Geometry::interaction's triangle branch for the lanes [0, n) whose ray hit a triangle, in
-/// SIMD lanes. (Lanes that hit another shape, or nothing, compute the last triangle's
-/// numbers, which nothing reads: the shade stage completes their interactions.) Vertex normals and uv, whose
-/// gathers are most of its cost, only in scenes with meshes that have them (Normals, UV).
-template <bool Normals, bool UV>
+/// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
+/// triangle, or a sphere whose uv nothing reads, in SIMD lanes; `done` marks them. (Other
+/// lanes compute numbers nothing reads: the shade stage completes their interactions.)
+/// Vertex normals, uv and spheres, whose gathers and double-precision arithmetic are much of
+/// its cost, only in scenes that have them (Normals, UV, Spheres).
+template <bool Normals, bool UV, bool Spheres>
 void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
     const Triangle *triangles = g.triangles.data();
     const Vec3 *positions = g.positions.data(), *normals = g.normals.data();
     const Vec2 *uvs = g.uvs.data();
     const int *flags = ws.triangle_flags.data();
     const uint32_t n_triangles = uint32_t(g.triangles.size());
+    const uint32_t n_analytic = uint32_t(ws.sphere_lanes.size());
+    const int *sphere_lanes = ws.sphere_lanes.data();
+    const Vec3 *centers = ws.sphere_center.data();
+    const float *radii = ws.sphere_radius.data(), *signs = ws.sphere_sign.data();
     using F = WavefrontScene::ShapeFlag;
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -585,6 +604,31 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
         float sign = (flag & F::FlipNormals) != 0 ? -1.f : 1.f;
         Vec3 gn = face_n * sign;
         ns = ns * sign;
+        int done = b.prim[k] < n_triangles;
+        if constexpr (Spheres) {
+            // A sphere: the hit re-projected onto it in double precision (the primitive's
+            // index clamped, as the triangle's).
+            const int a = int(std::min(std::max(b.prim[k], n_triangles) - n_triangles, n_analytic - 1));
+            const float radius = radii[a];
+            const Vec3 c{centers[a].x, centers[a].y, centers[a].z};
+            double t = b.ht[k];
+            double r0 = double(b.ox[k]) + double(b.dx[k]) * t - double(c.x);
+            double r1 = double(b.oy[k]) + double(b.dy[k]) * t - double(c.y);
+            double r2 = double(b.oz[k]) + double(b.dz[k]) * t - double(c.z);
+            double scale = double(radius) / std::sqrt(r0 * r0 + r1 * r1 + r2 * r2);
+            Vec3 sp{float(double(c.x) + r0 * scale), float(double(c.y) + r1 * scale),
+                    float(double(c.z) + r2 * scale)};
+            Vec3 sp_error = gamma(4) * vabs(sp) + Vec3(1, 1, 1) * (gamma(4) * radius);
+            Vec3 sn = normalize(Vec3{float(r0 * scale), float(r1 * scale), float(r2 * scale)}) * signs[a];
+            float sphere = b.prim[k] >= n_triangles ? 1.f : 0.f;  // (no &&: see vertex_stage)
+            sphere = sphere_lanes[a] != 0 ? sphere : 0.f;
+            p = select(sphere != 0.f, sp, p);
+            p_error = select(sphere != 0.f, sp_error, p_error);
+            gn = select(sphere != 0.f, sn, gn);
+            ns = select(sphere != 0.f, sn, ns);
+            done = sphere != 0.f ? 1 : done;
+        }
+        b.done[k] = done;
         // uv: the vertices' texture coordinates, or the barycentrics, where a texture reads it.
         if constexpr (UV) {
             // (Interpolated before the select: loads under a condition become masked gathers,
@@ -614,6 +658,21 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
     }
 }
 
+/// The instance of interaction_stage for a scene's shapes.
+using InteractionStage = void (*)(Batch &, int, const Geometry &, const WavefrontScene &);
+template <bool Normals, bool UV>
+InteractionStage interaction_stage_for(bool spheres) {
+    return spheres ? interaction_stage<Normals, UV, true> : interaction_stage<Normals, UV, false>;
+}
+template <bool Normals>
+InteractionStage interaction_stage_for(bool uv, bool spheres) {
+    return uv ? interaction_stage_for<Normals, true>(spheres) : interaction_stage_for<Normals, false>(spheres);
+}
+InteractionStage interaction_stage_for(const WavefrontScene &ws) {
+    return ws.any_normals ? interaction_stage_for<true>(ws.any_uv, ws.any_spheres)
+                          : interaction_stage_for<false>(ws.any_uv, ws.any_spheres);
+}
+
 /// Lane k's surface interaction, from its columns.
 SurfaceInteraction load_interaction(const Batch &b, int k, const Geometry &g) {
     SurfaceInteraction si;
@@ -628,9 +687,11 @@ SurfaceInteraction load_interaction(const Batch &b, int k, const Geometry &g) {
     si.uv = {b.uvx[k], b.uvy[k]};
     si.wi = {b.wix[k], b.wiy[k], b.wiz[k]};
     si.shape = int(g.shape_of(b.prim[k]));
-    si.tri = b.prim[k];
-    si.b1 = b.hu[k];
-    si.b2 = b.hv[k];
+    if (g.is_triangle(b.prim[k])) {
+        si.tri = b.prim[k];
+        si.b1 = b.hu[k];
+        si.b2 = b.hv[k];
+    }
     return si;
 }
 
@@ -719,11 +780,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.prim[k] = hit.prim;
         }
         // Complete the interactions of the triangles hit, in lanes.
-        if (ws.any_normals) {
-            ws.any_uv ? interaction_stage<true, true>(b, n, g, ws) : interaction_stage<true, false>(b, n, g, ws);
-        } else {
-            ws.any_uv ? interaction_stage<false, true>(b, n, g, ws) : interaction_stage<false, false>(b, n, g, ws);
-        }
+        interaction_stage_for(ws)(b, n, g, ws);
         // Complete the other interactions, add the emission each ray found, MIS-weighted
         // (path_li's code), and look up the diffuse reflectances; paths whose ray escaped end
         // here, and vertices of other BSDFs are shaded with path_li's own code.
@@ -732,7 +789,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.shade[k] = 0, b.mat[k] = 0;
             if (b.prim[k] == ~0u) continue;  // escaped (the wavefront's scenes have no environment)
             SurfaceInteraction si;
-            if (!g.is_triangle(b.prim[k])) {
+            if (!b.done[k]) {
                 Hit hit;
                 hit.t = b.ht[k], hit.u = b.hu[k], hit.v = b.hv[k], hit.prim = b.prim[k];
                 si = g.interaction(load_ray(b, k), hit);
@@ -763,7 +820,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             }
             // The vector stage shades it, with the reflectance and transmittance looked up here.
             auto lookup = [&](const TextureRef &r) {
-                if (r.attribute < 0)  // a constant or a texture at uv
+                if (r.texture < 0 && r.attribute < 0) return ctx.params.spectrum(r.param);  // (inline)
+                if (r.attribute < 0)  // a texture at uv
                     return eval_texture<RGB<float>>(r, ctx.textures, ctx.params, Vec2{b.uvx[k], b.uvy[k]});
                 if (!si.valid) si = load_interaction(b, k, g);
                 return make_query(bsdf, ctx, shape.bsdf, si).texture<RGB<float>>(r);

@@ -66,6 +66,13 @@ struct WavefrontScene {
     enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
     std::vector<int> triangle_flags;
     bool any_normals = false, any_uv = false;  ///< of the meshes: vertex normals, uv read
+    /// Per analytic primitive (Geometry::analytic): whether it is a sphere whose interaction
+    /// the interaction stage completes (one whose uv nothing reads), and its centre, radius
+    /// and normals' sign.
+    std::vector<int> sphere_lanes;
+    std::vector<Vec3> sphere_center;
+    std::vector<float> sphere_radius, sphere_sign;
+    bool any_spheres = false;
     std::vector<Light> lights;        ///< per Scene::emitters
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t.
