@@ -2,6 +2,7 @@
 
 #include <cstdlib>
 #include <cstring>
+#include <type_traits>
 
 namespace rbpt {
 
@@ -162,6 +163,18 @@ RBPT_INLINE Vec3 offset_p(const Batch &b, int k, const Vec3 &d) {
     return {round_away(o.x, offset.x), round_away(o.y, offset.y), round_away(o.z, offset.z)};
 }
 
+/// f(std::bool_constant<flag>...) for run-time flags: picks the template instance of a
+/// stage for a scene (f returns it).
+template <typename F>
+auto with_flags(F f) {
+    return f();
+}
+template <typename F, typename... Rest>
+auto with_flags(F f, bool first, Rest... rest) {
+    return first ? with_flags([&](auto... later) { return f(std::true_type{}, later...); }, rest...)
+                 : with_flags([&](auto... later) { return f(std::false_type{}, later...); }, rest...);
+}
+
 /// The next number of lane k's stream, as Sampler::uniform; the stream advances only where
 /// `draw` holds.
 RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
@@ -171,8 +184,8 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     return u;
 }
 
-// ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling, the
-// Fresnel reflectance and roughplastic's tables, written with selects where the scalar code
+// ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling and
+// roughplastic's tables (the Fresnel term is bsdfs.h's own), written with selects where the scalar code
 // returns early: the same operations as microfacet.h's and bsdfs.h's, so the same bits.
 
 /// microfacet_D for GGX.
@@ -212,20 +225,6 @@ RBPT_INLINE Vec3 ggx_visible_normal(float alpha, const Vec3 &wi, Vec2 u) {
     return normalize(Vec3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
 }
 
-/// fresnel_dielectric's reflectance.
-RBPT_INLINE float fresnel_lane(float cos_i, float eta) {
-    float outside = cos_i >= 0.f ? 1.f : 0.f;
-    float rcp_eta = 1.f / eta;
-    float eta_it = outside != 0.f ? eta : rcp_eta, eta_ti = outside != 0.f ? rcp_eta : eta;
-    float cos_t2 = 1.f - eta_ti * eta_ti * (1.f - cos_i * cos_i);
-    float ci = std::abs(cos_i), ct = safe_sqrt(cos_t2);
-    float a_s = (ci - eta_it * ct) / (ci + eta_it * ct);
-    float a_p = (ct - eta_it * ci) / (ct + eta_it * ci);
-    float r = 0.5f * (a_s * a_s + a_p * a_p);
-    r = ci == 0.f ? 1.f : r;
-    return eta == 1.f ? 0.f : r;
-}
-
 /// RoughPlasticTables::transmittance of the table at `table`.
 RBPT_INLINE float transmittance(const float *tables, int table, float cos_theta) {
     constexpr int N = RoughPlasticTables::Resolution;
@@ -261,7 +260,8 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
     facing = dot(wo, h) > 0.f ? facing : 0.f;
     RoughEval e{a[0] * lg, a[1] * lg, a[2] * lg, facing != 0.f ? l : 0.f};
     // The plastic: its specular lobe, and the diffuse base seen through the rough interface.
-    float spec = fresnel_lane(dot(wi, h), m.eta) * l * g;
+    float cos_t, eta_it, eta_ti;
+    float spec = fresnel_dielectric(dot(wi, h), m.eta, &cos_t, &eta_it, &eta_ti) * l * g;
     float t_i = transmittance(tables, m.table, wi.z), t_o = transmittance(tables, m.table, wo.z);
     float r_int = m.internal_reflectance;
     float base = t_i * t_o * (InvPi / (m.eta * m.eta) * wo.z);
@@ -407,19 +407,9 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // The mirror's and the dielectric's reflection.
         Vec3 reflected{wi.x * -1.f, wi.y * -1.f, wi.z};
         // The dielectric: reflection or refraction, chosen by u1 against the Fresnel
-        // reflectance (fresnel_dielectric with selects for its early returns).
-        float cos_i = wi.z, eta = m.eta;
-        float outside = cos_i >= 0.f ? 1.f : 0.f;
-        float rcp_eta = 1.f / eta;
-        float eta_it = outside != 0.f ? eta : rcp_eta, eta_ti = outside != 0.f ? rcp_eta : eta;
-        float cos_t2 = 1.f - eta_ti * eta_ti * (1.f - cos_i * cos_i);
-        float ci = std::abs(cos_i), ct = std::sqrt(std::max(cos_t2, 0.f));
-        float cos_t = ct * (outside != 0.f ? -1.f : 1.f);
-        float a_s = (ci - eta_it * ct) / (ci + eta_it * ct);
-        float a_p = (ct - eta_it * ci) / (ct + eta_it * ci);
-        float r = 0.5f * (a_s * a_s + a_p * a_p);
-        r = ci == 0.f ? 1.f : r;
-        r = eta == 1.f ? 0.f : r;
+        // reflectance (fresnel_dielectric, whose early returns GCC turns into selects).
+        float cos_t, eta_it, eta_ti;
+        float r = fresnel_dielectric(wi.z, m.eta, &cos_t, &eta_it, &eta_ti);
         float reflects = u1 <= r ? 1.f : 0.f;
         Vec3 refracted{(eta_ti * -1.f) * wi.x, (eta_ti * -1.f) * wi.y, cos_t};
         float glass_pdf = reflects != 0.f ? r : 1.f - r;
@@ -487,17 +477,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
 
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
-template <bool OneLight, bool Delta>
-VertexStage vertex_stage_for(bool rough) {
-    return rough ? vertex_stage<OneLight, Delta, true> : vertex_stage<OneLight, Delta, false>;
-}
-template <bool OneLight>
-VertexStage vertex_stage_for(bool delta, bool rough) {
-    return delta ? vertex_stage_for<OneLight, true>(rough) : vertex_stage_for<OneLight, false>(rough);
-}
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
-    return ws.lights.size() == 1 ? vertex_stage_for<true>(ws.any_delta, ws.any_rough)
-                                 : vertex_stage_for<false>(ws.any_delta, ws.any_rough);
+    return with_flags([](auto one_light, auto delta, auto rough) -> VertexStage {
+        return vertex_stage<decltype(one_light)::value, decltype(delta)::value, decltype(rough)::value>;
+    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
@@ -660,17 +643,10 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
 
 /// The instance of interaction_stage for a scene's shapes.
 using InteractionStage = void (*)(Batch &, int, const Geometry &, const WavefrontScene &);
-template <bool Normals, bool UV>
-InteractionStage interaction_stage_for(bool spheres) {
-    return spheres ? interaction_stage<Normals, UV, true> : interaction_stage<Normals, UV, false>;
-}
-template <bool Normals>
-InteractionStage interaction_stage_for(bool uv, bool spheres) {
-    return uv ? interaction_stage_for<Normals, true>(spheres) : interaction_stage_for<Normals, false>(spheres);
-}
 InteractionStage interaction_stage_for(const WavefrontScene &ws) {
-    return ws.any_normals ? interaction_stage_for<true>(ws.any_uv, ws.any_spheres)
-                          : interaction_stage_for<false>(ws.any_uv, ws.any_spheres);
+    return with_flags([](auto normals, auto uv, auto spheres) -> InteractionStage {
+        return interaction_stage<decltype(normals)::value, decltype(uv)::value, decltype(spheres)::value>;
+    }, ws.any_normals, ws.any_uv, ws.any_spheres);
 }
 
 /// Lane k's surface interaction, from its columns.
