@@ -20,6 +20,10 @@
 //   nodes stay in the enclosing sweep's adjoints for that sweep to carry on. Its nodes are
 //   discarded when it returns. This is how integrate() runs a fresh forward and backward pass
 //   inside the outer backward pass without disturbing it.
+// - Sink nodes: a value read from a caller's parameter (a constant, or a few texels) whose
+//   adjoint the sweep scatters straight into the caller's double gradient buffer
+//   (GradientSink). It is what a custom node could do, without the functor's arena, thunk
+//   and bookkeeping: the backward pass reads two parameters per path vertex.
 // - A Var belongs to the thread that recorded it and is valid until the tape is rewound past
 //   its node (e.g. tape_reset()); constants stay valid forever.
 #pragma once
@@ -44,8 +48,15 @@ class Var;
 
 namespace detail {
 
-/// Whether operations on variables are recorded on this thread (cleared by NoRecord).
-inline thread_local bool recording = true;
+/// What the hot path reads of its thread: whether operations on variables are recorded
+/// (cleared by NoRecord) and the thread's tapes (Tape<float>, Tape<double>), created at first
+/// use. One trivially destructible thread_local, so that an operation costs one TLS address
+/// lookup (a call in a shared library) and no initialisation guard.
+struct ThreadState {
+    bool recording = true;
+    void *tapes[2] = {nullptr, nullptr};
+};
+inline thread_local ThreadState thread_state;
 
 template <typename T>
 inline bool all_zero(const RGB<T> &a) {
@@ -102,12 +113,37 @@ private:
 
 }  // namespace detail
 
+/// Where the adjoint of a sink node goes: up to four entries of a caller-owned double buffer,
+/// each weighted; an entry of one channel receives the sum of the adjoint's three channels,
+/// an entry of three channels the adjoint itself.
+struct GradientSink {
+    double *grad;
+    int64_t offset[4];  ///< of each entry's first channel in `grad`
+    float weight[4];
+    int n;         ///< entries (1 to 4)
+    int channels;  ///< 1 or 3
+
+    /// Add weight[k] * adjoint into the entries.
+    template <typename T>
+    void scatter(const RGB<T> &d) const {
+        for (int k = 0; k < n; ++k) {
+            double w = double(weight[k]);
+            double *entry = grad + offset[k];
+            if (channels == 1) {
+                entry[0] += w * (double(d[0]) + double(d[1]) + double(d[2]));
+            } else {
+                for (int c = 0; c < 3; ++c) entry[c] += w * double(d[c]);
+            }
+        }
+    }
+};
+
 /// RAII guard: while alive, operations on this thread record nothing and return constants
 /// (also the custom-functor constructor). Variables can still be created.
 class NoRecord {
 public:
-    NoRecord() : saved_(detail::recording) { detail::recording = false; }
-    ~NoRecord() { detail::recording = saved_; }
+    NoRecord() : saved_(detail::thread_state.recording) { detail::thread_state.recording = false; }
+    ~NoRecord() { detail::thread_state.recording = saved_; }
     NoRecord(const NoRecord &) = delete;
     NoRecord &operator=(const NoRecord &) = delete;
 
@@ -121,8 +157,9 @@ class Tape {
 public:
     /// The calling thread's tape.
     static Tape &local() {
-        static thread_local Tape tape;
-        return tape;
+        void *&slot = detail::thread_state.tapes[std::is_same_v<T, double>];
+        if (__builtin_expect(slot == nullptr, 0)) slot = create();
+        return *static_cast<Tape *>(slot);
     }
 
     Tape() = default;
@@ -142,6 +179,7 @@ public:
             arena_.rewind(c.arena_mark);
             customs_.pop_back();
         }
+        while (!sinks_.empty() && size_t(sinks_.back().node) >= position) sinks_.pop_back();
         nodes_.erase(nodes_.begin() + std::ptrdiff_t(position), nodes_.end());
     }
     /// Discard everything (all Vars of this thread but constants become invalid); inside a
@@ -155,11 +193,11 @@ public:
 
 private:
     friend class Var<T>;
-    enum class Kind : int32_t { Op, Leaf, Custom };
+    enum class Kind : int32_t { Op, Leaf, Custom, Sink };
 
     /// A recorded operation: d(result) = da d(a) + db d(b), componentwise.
     struct Node {
-        int32_t a, b;  ///< parents (-1: none); a Custom node keeps its functor index in a
+        int32_t a, b;  ///< parents (-1: none); a Custom (Sink) node keeps its functor's (sink's) index in a
         Kind kind;
         RGB<T> da, db;  ///< partials; a Leaf accumulates its gradient in da
         Node(int32_t a, int32_t b, Kind kind, const RGB<T> &da, const RGB<T> &db)
@@ -174,6 +212,28 @@ private:
         detail::Arena::Position arena_mark;  ///< arena position before the payload
         int32_t node;
     };
+
+    /// A sink node's destination.
+    struct Sink {
+        GradientSink to;
+        int32_t node;
+    };
+
+    /// The calling thread's tape, owned by a thread_local that destroys it at the thread's
+    /// exit (and clears the slot, so that a later use creates a new one).
+    [[gnu::noinline]] static Tape *create() {
+        static_assert(std::is_same_v<T, float> || std::is_same_v<T, double>);
+        struct Owner {
+            std::unique_ptr<Tape> tape;
+            ~Owner() {
+                tape.reset();
+                detail::thread_state.tapes[std::is_same_v<T, double>] = nullptr;
+            }
+        };
+        static thread_local Owner owner;
+        if (!owner.tape) owner.tape.reset(new Tape());
+        return owner.tape.get();
+    }
 
     template <typename F>
     static void call_thunk(void *p, const RGB<T> &grad) {
@@ -194,6 +254,20 @@ private:
         return push(a, b, Kind::Op, da, db);
     }
     int32_t push_leaf() { return push(-1, -1, Kind::Leaf, RGB<T>(), RGB<T>()); }
+    /// (Filled in place: a GradientSink assembled on the stack and copied whole made the
+    /// copy's wide load wait for the narrow stores that wrote it.)
+    int32_t push_sink(double *grad, int channels, int n, const int64_t *offset, const float *weight) {
+        Sink &s = sinks_.emplace_back();
+        s.node = int32_t(nodes_.size());
+        s.to.grad = grad;
+        s.to.channels = channels;
+        s.to.n = n;
+        for (int k = 0; k < n; ++k) {
+            s.to.offset[k] = offset ? offset[k] : 0;
+            s.to.weight[k] = weight ? weight[k] : 1.f;
+        }
+        return push(int32_t(sinks_.size() - 1), -1, Kind::Sink, RGB<T>(), RGB<T>());
+    }
     template <typename F>
     int32_t push_custom(F &&f) {
         using Fn = std::decay_t<F>;
@@ -228,6 +302,7 @@ private:
                     break;
                 case Kind::Leaf: n.da += g; break;
                 case Kind::Custom: run_custom(n.a, g); break;  // may reallocate nodes_
+                case Kind::Sink: sinks_[n.a].to.scatter(g); break;
             }
         }
     }
@@ -243,12 +318,12 @@ private:
             ~Scope() {
                 tape.rewind(mark);
                 tape.floor_ = floor;
-                detail::recording = recording;
+                detail::thread_state.recording = recording;
             }
-        } scope{*this, nodes_.size(), floor_, detail::recording};
+        } scope{*this, nodes_.size(), floor_, detail::thread_state.recording};
         const Custom c = customs_[index];  // a copy: customs_ may grow during the call
         floor_ = int32_t(nodes_.size());
-        detail::recording = true;
+        detail::thread_state.recording = true;
         c.call(c.payload, grad);
     }
 
@@ -264,6 +339,7 @@ private:
     std::vector<Node> nodes_;
     std::vector<RGB<T>> adjoint_;  ///< scratch of the reverse sweep, parallel to nodes_
     std::vector<Custom> customs_;
+    std::vector<Sink> sinks_;
     detail::Arena arena_;
     int32_t floor_ = 0;  ///< lowest node the current sweep may visit
 };
@@ -307,7 +383,17 @@ public:
     template <typename F,
               std::enable_if_t<std::is_invocable_v<std::decay_t<F> &, const RGB<T> &>, int> = 0>
     Var(const Var &value, F &&backward) : value_(value.value_) {
-        if (detail::recording) node_ = Tape<T>::local().push_custom(std::forward<F>(backward));
+        if (detail::thread_state.recording) node_ = Tape<T>::local().push_custom(std::forward<F>(backward));
+    }
+
+    /// A node with value `value` whose backward step scatters the gradient reaching it into
+    /// `grad` (which must outlive the sweep), as a GradientSink of `n` entries: at offset[k]
+    /// with weight[k] (nullptr: the one entry at 0, weight 1). Under NoRecord, a constant.
+    Var(const RGB<T> &value, double *grad, int channels, int n = 1, const int64_t *offset = nullptr,
+        const float *weight = nullptr)
+        : value_(value) {
+        if (detail::thread_state.recording)
+            node_ = Tape<T>::local().push_sink(grad, channels, n, offset, weight);
     }
 
     /// The value.
@@ -339,7 +425,7 @@ public:
     template <typename P>
     [[gnu::always_inline]] static Var unary(const RGB<T> &value, const Var &a, P partial) {
         Var r(value);
-        if (__builtin_expect(a.node_ >= 0, 0) && detail::recording)
+        if (__builtin_expect(a.node_ >= 0, 0) && detail::thread_state.recording)
             r.node_ = Tape<T>::local().push_op(a.node_, partial(), -1, RGB<T>());
         return r;
     }
@@ -350,7 +436,7 @@ public:
                                              PA partial_a, PB partial_b) {
         Var r(value);
         // (a.node_ & b.node_) >= 0: not both -1, i.e. at least one operand is recorded.
-        if (__builtin_expect((a.node_ & b.node_) >= 0, 0) && detail::recording) {
+        if (__builtin_expect((a.node_ & b.node_) >= 0, 0) && detail::thread_state.recording) {
             r.node_ = Tape<T>::local().push_op(a.node_, a.node_ >= 0 ? partial_a() : RGB<T>(),
                                                b.node_, b.node_ >= 0 ? partial_b() : RGB<T>());
         }

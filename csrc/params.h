@@ -60,10 +60,10 @@ struct Params<RGB<T>> {
     bool differentiable(int) const { return false; }
 };
 
-/// Reverse mode: parameters that require gradients are read as custom nodes whose backward
-/// step adds the incoming adjoint into this worker's gradient buffer (`grad`, one per
-/// parameter; nullptr for constants, which record nothing). Buffers are double whatever T is:
-/// a float sum stops growing once it is 2^24 times the terms added to it.
+/// Reverse mode: parameters that require gradients are read as sink nodes whose backward step
+/// adds the incoming adjoint into this worker's gradient buffer (`grad`, one per parameter;
+/// nullptr for constants, which record nothing). Buffers are double whatever T is: a float
+/// sum stops growing once it is 2^24 times the terms added to it.
 template <typename T>
 struct Params<Var<T>> {
     std::vector<const T *> data;
@@ -74,13 +74,7 @@ struct Params<Var<T>> {
         RGB<T> v = Params<RGB<T>>::value_of(data[p], numel[p]);
         double *g = grad[p];
         if (!g) return Var<T>(v);
-        if (numel[p] == 1)
-            return Var<T>(Var<T>(v), [g](const RGB<T> &d) {
-                g[0] += double(d[0]) + double(d[1]) + double(d[2]);
-            });
-        return Var<T>(Var<T>(v), [g](const RGB<T> &d) {
-            for (int c = 0; c < 3; ++c) g[c] += double(d[c]);
-        });
+        return Var<T>(v, g, numel[p] == 1 ? 1 : 3);
     }
     Var<T> real(int p) const { return spectrum(p); }
     Var<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
@@ -88,22 +82,9 @@ struct Params<Var<T>> {
         double *g = grad[p];
         if (!g) return Var<T>(v);
         // Scatter the adjoint to the (up to) four texels, weighted as in the lookup.
-        struct Texels {
-            int64_t index[4];
-            float weight[4];
-            int n, channels;
-        } t{{index[0], index[1], index[2], index[3]}, {weight[0], weight[1], weight[2], weight[3]}, n, channels};
-        return Var<T>(Var<T>(v), [g, t](const RGB<T> &d) {
-            for (int k = 0; k < t.n; ++k) {
-                double w = double(t.weight[k]);
-                double *texel = g + t.index[k] * t.channels;
-                if (t.channels == 1) {
-                    texel[0] += w * (double(d[0]) + double(d[1]) + double(d[2]));
-                } else {
-                    for (int c = 0; c < 3; ++c) texel[c] += w * double(d[c]);
-                }
-            }
-        });
+        int64_t offset[4];
+        for (int k = 0; k < n; ++k) offset[k] = index[k] * channels;
+        return Var<T>(v, g, channels, n, offset, weight);
     }
     float mean(int p) const { return detail::mean_of(data[p], numel[p]); }
     bool differentiable(int p) const { return grad[p] != nullptr; }

@@ -585,12 +585,14 @@ struct UniformSampler {
 
 template <typename T>
 static void workload(std::vector<T> &grads, uint64_t seed) {
+    double sink_grads[1] = {0.0};
     Var<T> x(rgb<T>(0.5, 0.6, 0.7), true);
     Var<T> y = x;
     for (int i = 0; i < 2000; ++i) y = y * 0.999f + x * 0.001f;
     for (int k = 0; k < 50; ++k) {
         Var<T> texel(y.value(), TexelRead<T>{grads.data(), {0, 1, 4, 5}, {.1, .2, .3, .4}, {}});
         y = y + texel * 0.01f;
+        y = y + Var<T>(y.value(), sink_grads, 1) * 0.01f;  // a sink node
     }
     Var<T> I = integrate([x](float u) { return exp(x * u); }, UniformSampler{Sampler(seed, 0, 0)},
                          8);
@@ -877,6 +879,63 @@ static void test13_vectorisable_math() {
     CHECK((smith_G1<MicrofacetType::GGX, true>(0.3f, v, m) == smith_G1<MicrofacetType::GGX>(0.3f, v, m)));
 }
 
+// ---- 5. Sink nodes: parameter reads that scatter into a gradient buffer ---------------------
+
+template <typename T>
+static void test14_sink_nodes() {
+    g_test = "sink_nodes";
+    tape_reset<T>();
+    Var<T> x(rgb<T>(1, 2, 3), true);
+    // A bilinear read of four RGB texels and a constant read of one channel (which receives
+    // the sum of the adjoint's channels), both twice, so that their deposits add up.
+    std::vector<double> texel_grads(16 * 3, 0.0), scalar_grad(1, 0.0);
+    const int64_t offset[4] = {0, 3, 12, 15};
+    const float weight[4] = {0.1f, 0.2f, 0.3f, 0.4f};
+    RGB<T> tv = rgb<T>(0.5, 0.25, 0.125), sv(T(0.75));
+    Var<T> texture(tv, texel_grads.data(), 3, 4, offset, weight);
+    Var<T> scalar(sv, scalar_grad.data(), 1);
+    CHECK(texture.requires_grad() && scalar.requires_grad());
+    CHECK_RGB(texture.value(), tv, 0);
+    Var<T> y = texture * x + scalar * texture + Var<T>(tv, texel_grads.data(), 3, 4, offset, weight) +
+               Var<T>(sv, scalar_grad.data(), 1) * 2.f;
+    y.backward(rgb<T>(1, 10, 100));
+    RGB<T> seed = rgb<T>(1, 10, 100);
+    RGB<T> d_texture = seed * (x.value() + sv) + seed;  // both reads of the texels
+    for (int k = 0; k < 4; ++k)
+        for (int c = 0; c < 3; ++c)
+            CHECK_CLOSE(texel_grads[size_t(offset[k] + c)], double(weight[k]) * double(d_texture[c]),
+                        tolerance<T>());
+    CHECK_CLOSE(texel_grads[6], 0.0, 0.0);  // untouched entries stay zero
+    RGB<T> d_scalar = seed * tv + seed * T(2);
+    CHECK_CLOSE(scalar_grad[0], double(d_scalar[0]) + double(d_scalar[1]) + double(d_scalar[2]),
+                tolerance<T>());
+    CHECK_RGB(x.grad(), seed * tv, tolerance<T>());
+
+    // Under NoRecord a read is a constant; a rewind drops the sinks recorded after its mark.
+    {
+        NoRecord no_record;
+        CHECK(!Var<T>(tv, scalar_grad.data(), 1).requires_grad());
+    }
+    double before = scalar_grad[0];
+    tape_reset<T>();
+    Var<T> again(sv, scalar_grad.data(), 1);
+    (again * 3.f).backward();
+    CHECK_CLOSE(scalar_grad[0], before + 9.0, tolerance<T>());
+
+    // A read inside a custom functor's backward step is swept there and discarded after.
+    tape_reset<T>();
+    scalar_grad[0] = 0.0;
+    Var<T> z(x, [&](const RGB<T> &g) {
+        Var<T> inner(sv, scalar_grad.data(), 1);
+        (inner * inner).backward(g);
+    });
+    Var<T> w = z * 2.f;
+    size_t size = tape_size<T>();
+    w.backward();
+    CHECK(tape_size<T>() == size);
+    CHECK_CLOSE(scalar_grad[0], 3.0 * 2.0 * 2.0 * double(sv[0]), tolerance<T>());
+}
+
 template <typename T>
 static void run_var_tests() {
     test01_operations<Var<T>>();
@@ -890,6 +949,7 @@ static void run_var_tests() {
     test10_integrate_uses_new_samples<T>();
     test11_integrate_is_unbiased<T>();
     test12_nested_integrate<T>();
+    test14_sink_nodes<T>();
 }
 
 int main() {
