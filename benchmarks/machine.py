@@ -67,5 +67,12 @@ def write_csv(path: Path, rows: list) -> None:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
         w.writerows(rows)
-    root = Path(__file__).resolve().parent.parent
-    print(f"wrote {path.relative_to(root) if path.resolve().is_relative_to(root) else path}")
+    print(f"wrote {shown(path)}")
+
+
+def shown(path: Path, root: Path = Path(__file__).resolve().parent.parent) -> Path:
+    """`path` as printed: relative to the checkout (`root`) when inside it, else absolute.
+    (A relative `path`, e.g. --out benchmarks/results/avx2 from the Makefile, is resolved
+    first: relative_to() of a relative path against an absolute root raises.)"""
+    where = Path(path).resolve()
+    return where.relative_to(root) if where.is_relative_to(root) else where

@@ -1,6 +1,7 @@
 """The benchmarks run in their smoke settings (ours only, no Mitsuba needed)."""
 import csv
 import math
+from pathlib import Path
 
 import pytest
 
@@ -70,3 +71,18 @@ def test04_simd_stages_vectorise_bitwise(tmp_path):
         assert math.isfinite(r["speedup"]) and r["scalar_ns"] > 0 and r["simd_ns"] > 0
     with open(tmp_path / "simd_stages.csv") as f:
         assert len(list(csv.DictReader(f))) == len(rows)
+
+
+def test05_csv_at_a_relative_path(tmp_path, monkeypatch, capsys):
+    # `make bench-avx2` passes --out benchmarks/results/avx2, relative to the checkout
+    machine = load_benchmark("machine")
+    monkeypatch.chdir(tmp_path)
+    relative = Path("results") / "avx2" / "x.csv"
+    machine.write_csv(relative, [{"scene": "cbox", "seconds": 1.5}, {"scene": "glossy", "rmse": 0.25}])
+    with open(tmp_path / relative) as f:
+        rows = list(csv.DictReader(f))
+    assert rows == [{"scene": "cbox", "seconds": "1.5", "rmse": ""},
+                    {"scene": "glossy", "seconds": "", "rmse": "0.25"}]
+    assert f"wrote {tmp_path / relative}" in capsys.readouterr().out  # outside the checkout
+    assert machine.shown(relative, root=tmp_path) == relative  # inside it
+    assert machine.shown(tmp_path / relative, root=tmp_path) == relative
