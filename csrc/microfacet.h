@@ -41,7 +41,7 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
 
 /// e^x for float x, from a polynomial (within 2 ulps of libm's expf; x below -87 gives
 /// e^-87): unlike libm's, it can be called in a loop that the compiler vectorises.
-inline float exp_poly(float x) {
+RBPT_INLINE float exp_poly(float x) {
     x = std::max(x, -87.f);
     // x = n ln2 + r, |r| <= ln2 / 2 (n rounded by the 1.5 * 2^23 trick; ln2 in two parts)
     float n = (x * 1.44269504f + 12582912.f) - 12582912.f;
@@ -63,7 +63,7 @@ inline float exp_poly(float x) {
 
 /// erfc(z) for float z >= 0 (Numerical Recipes' erfcc: fractional error below 1.2e-7, plus the
 /// rounding of z^2 in float), on exp_poly, so that vectorised loops can call it.
-inline float erfc_poly(float z) {
+RBPT_INLINE float erfc_poly(float z) {
     float t = 1.f / (1.f + 0.5f * z);
     float p = 0.17087277f;
     p = p * t - 0.82215223f;
@@ -81,9 +81,10 @@ inline float erfc_poly(float z) {
 /// Smith's masking function G1(v, m) for direction v and microfacet normal m, of the
 /// distribution `Type` (a template argument for loops over one distribution, which inline it).
 /// With VectorMath, Beckmann's takes erf and exp from erfc_poly and exp_poly (float only):
-/// within 2e-7 of libm's, and vectorisable.
+/// within 2e-7 of libm's, and vectorisable. (Forced inline, with the polynomials: GCC's size
+/// limits left Beckmann's out of line, and the tables' vectorised loop with it.)
 template <MicrofacetType Type, bool VectorMath = false, typename R>
-R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
+RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
     using std::erf;
     using std::exp;
     using std::sqrt;

@@ -143,3 +143,29 @@ def l2_gradient_samples(scene, key: str, spp: int, n: int, mean_spp: int):
             out.append(float(g[0]))
     scene.params[key] = p.detach()
     return expected, torch.tensor(replay, dtype=dtype), torch.tensor(independent, dtype=dtype)
+
+
+# setup.py's optimised flags, without -march (the caller chooses it).
+OPT_FLAGS = ["-std=c++17", "-fopenmp", "-O3", "-DNDEBUG", "-fwrapv", "-ffp-contract=off", "-fno-math-errno",
+             "-fno-trapping-math"]
+
+
+def assert_marked_loops_vectorise(source: Path, pragma: str, march: str, tmp_path: Path) -> int:
+    """Compile csrc/`source` for `march` with GCC's vectoriser report and assert that the loop
+    after each `pragma` line vectorises in every template instance (an edit that stops GCC, a
+    helper it no longer inlines, keeps results bitwise equal and only makes them slower, which
+    no other test sees). Returns the number of such loops."""
+    import subprocess
+    path = ROOT / "csrc" / source
+    lines = path.read_text().splitlines()
+    loops = [i + 2 for i, line in enumerate(lines) if line.strip() == pragma]  # the for's line
+    out = subprocess.run(["g++", *OPT_FLAGS, f"-march={march}", f"-I{ROOT / 'csrc'}", "-c", str(path),
+                          "-o", str(tmp_path / "marked.o"), "-fopt-info-vec-all"],
+                         capture_output=True, text=True, check=True).stderr.splitlines()
+    for line in loops:
+        at = [entry for entry in out if f"{source}:{line}:" in entry]
+        assert any("loop vectorized" in entry for entry in at), f"line {line}: {lines[line - 1].strip()}"
+        assert not any("couldn't vectorize loop" in entry for entry in at), \
+            f"line {line} ({lines[line - 1].strip()}) not vectorised in some instance:\n" + \
+            "\n".join(entry for entry in at if "missed" in entry)[:3000]
+    return len(loops)

@@ -2,7 +2,6 @@
 shaded in SIMD lanes give the scalar integrator's images bit for bit, and scenes outside its
 subset are left to the scalar integrator."""
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
@@ -10,7 +9,7 @@ import torch
 
 import torch_rbpt as tr
 from torch_rbpt import _C
-from conftest import ROOT, SHARED, torch_threads
+from conftest import SHARED, assert_marked_loops_vectorise, torch_threads
 
 pytestmark = pytest.mark.skipif(_C.build_isa not in ("avx2", "avx512"),
                                 reason="the wavefront needs an AVX2 build (PORTABLE=1 builds run path_li)")
@@ -243,11 +242,6 @@ def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change
     assert uses_wavefront(room(tmp_path))
 
 
-# setup.py's optimised flags, without -march (the test chooses it).
-FLAGS = ["-std=c++17", "-fopenmp", "-O3", "-DNDEBUG", "-fwrapv", "-ffp-contract=off", "-fno-math-errno",
-         "-fno-trapping-math"]
-
-
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
 @pytest.mark.parametrize("march", ["x86-64-v3", "native"])
 def test08_vector_stages_vectorise(tmp_path, march):
@@ -255,16 +249,4 @@ def test08_vector_stages_vectorise(tmp_path, march):
     # template instances, for AVX2 and for this machine. An edit that stops GCC (a helper it
     # no longer inlines, a load under a condition) keeps the images bitwise equal and only
     # makes them slower, which no other test sees.
-    source = ROOT / "csrc" / "wavefront.cpp"
-    lines = source.read_text().splitlines()
-    loops = [i + 2 for i, line in enumerate(lines) if line.strip() == "#pragma GCC ivdep"]  # the for's line
-    assert len(loops) >= 3
-    out = subprocess.run(["g++", *FLAGS, f"-march={march}", f"-I{ROOT / 'csrc'}", "-c", str(source),
-                          "-o", str(tmp_path / "wavefront.o"), "-fopt-info-vec-all"],
-                         capture_output=True, text=True, check=True).stderr.splitlines()
-    for line in loops:
-        at = [entry for entry in out if f"wavefront.cpp:{line}:" in entry]
-        assert any("loop vectorized" in entry for entry in at), f"line {line}: {lines[line - 1].strip()}"
-        assert not any("couldn't vectorize loop" in entry for entry in at), \
-            f"line {line} ({lines[line - 1].strip()}) not vectorised in some instance:\n" + \
-            "\n".join(entry for entry in at if "missed" in entry)[:3000]
+    assert assert_marked_loops_vectorise("wavefront.cpp", "#pragma GCC ivdep", march, tmp_path) >= 3
