@@ -1,6 +1,7 @@
 """Shared fixtures: paths to the public scenes and small scenes built in code."""
 import contextlib
 import importlib.util
+import subprocess
 import sys
 from pathlib import Path
 
@@ -150,12 +151,11 @@ OPT_FLAGS = ["-std=c++17", "-fopenmp", "-O3", "-DNDEBUG", "-fwrapv", "-ffp-contr
              "-fno-trapping-math"]
 
 
-def assert_marked_loops_vectorise(source: Path, pragma: str, march: str, tmp_path: Path) -> int:
+def assert_marked_loops_vectorise(source: str, pragma: str, march: str, tmp_path: Path) -> int:
     """Compile csrc/`source` for `march` with GCC's vectoriser report and assert that the loop
     after each `pragma` line vectorises in every template instance (an edit that stops GCC, a
     helper it no longer inlines, keeps results bitwise equal and only makes them slower, which
     no other test sees). Returns the number of such loops."""
-    import subprocess
     path = ROOT / "csrc" / source
     lines = path.read_text().splitlines()
     loops = [i + 2 for i, line in enumerate(lines) if line.strip() == pragma]  # the for's line
