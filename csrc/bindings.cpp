@@ -285,7 +285,7 @@ template <typename T>
 std::vector<std::optional<torch::Tensor>> render_bwd_typed(
     const Scene &scene, const Camera &cam, const IntegratorSettings &cfg,
     const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
-    const torch::Tensor &adjoint, const RenderRequest &req) {
+    const torch::Tensor &adjoint, RenderRequest req) {
     Params<RGB<T>> values = bind_params<T>(scene, params);
     auto opts = torch::TensorOptions().dtype(std::is_same<T, float>::value ? torch::kFloat32 : torch::kFloat64);
     std::vector<std::optional<torch::Tensor>> out(params.size());
@@ -313,11 +313,12 @@ std::vector<std::optional<torch::Tensor>> render_bwd_typed(
 std::vector<std::optional<torch::Tensor>> render_bwd_entry(
     const Scene &scene, const py::dict &camera, const py::dict &integrator,
     const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
-    torch::Tensor grad_image, int spp, uint64_t seed) {
+    torch::Tensor grad_image, int spp, uint64_t seed, uint64_t *paths = nullptr) {
     PlainTensors plain;
     Camera cam = make_camera(camera);
     IntegratorSettings cfg = make_integrator(integrator);
     RenderRequest req = whole_image(cam, spp, seed);
+    if (paths) req.lane_paths = paths, req.tape_paths = paths + 1;
     if (requires_grad.size() != params.size()) fail("requires_grad must have one flag per parameter");
     bool dbl = !params.empty() && params[0].scalar_type() == torch::kFloat64;
     auto dtype = dbl ? torch::kFloat64 : torch::kFloat32;
@@ -328,6 +329,16 @@ std::vector<std::optional<torch::Tensor>> render_bwd_entry(
     grad_image = grad_image.to(torch::kCPU, dtype).contiguous();
     return dbl ? render_bwd_typed<double>(scene, cam, cfg, params, requires_grad, grad_image, req)
                : render_bwd_typed<float>(scene, cam, cfg, params, requires_grad, grad_image, req);
+}
+
+/// render_bwd_entry, with the number of paths the backward pass traced in lanes and with the
+/// tape (for tests).
+py::tuple render_bwd_paths(const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                           const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
+                           torch::Tensor grad_image, int spp, uint64_t seed) {
+    uint64_t paths[2] = {0, 0};
+    auto grads = render_bwd_entry(scene, camera, integrator, params, requires_grad, grad_image, spp, seed, paths);
+    return py::make_tuple(grads, paths[0], paths[1]);
 }
 
 template <typename T>
@@ -876,9 +887,17 @@ PYBIND11_MODULE(_C, m) {
           py::arg("row_end") = -1);
     m.def("uses_wavefront", &uses_wavefront, py::arg("scene"), py::arg("camera"),
           py::arg("integrator"), py::arg("params"));
-    m.def("render_bwd", &render_bwd_entry, py::arg("scene"), py::arg("camera"),
+    m.def("render_bwd", [](const Scene &scene, const py::dict &camera, const py::dict &integrator,
+                           const std::vector<torch::Tensor> &params, const std::vector<bool> &requires_grad,
+                           torch::Tensor grad_image, int spp, uint64_t seed) {
+              return render_bwd_entry(scene, camera, integrator, params, requires_grad, grad_image, spp, seed);
+          }, py::arg("scene"), py::arg("camera"),
           py::arg("integrator"), py::arg("params"), py::arg("requires_grad"),
           py::arg("grad_image"), py::arg("spp"), py::arg("seed"));
+    m.def("render_bwd_paths", &render_bwd_paths, py::arg("scene"), py::arg("camera"),
+          py::arg("integrator"), py::arg("params"), py::arg("requires_grad"),
+          py::arg("grad_image"), py::arg("spp"), py::arg("seed"),
+          "render_bwd, and the numbers of paths it traced in lanes and with the tape.");
     m.def("render_jvp", &render_jvp_entry, py::arg("scene"), py::arg("camera"),
           py::arg("integrator"), py::arg("params"), py::arg("tangents"), py::arg("spp"),
           py::arg("seed"));

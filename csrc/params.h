@@ -16,6 +16,31 @@ namespace rbpt {
 template <typename S>
 struct Params;
 
+/// One read of a parameter: `n` entries (`channels` values each, starting at `offset`)
+/// summed with `weight`; a constant is one entry of weight 1.
+struct ParamRead {
+    int param = -1, channels = 1, n = 0;
+    int64_t offset[4] = {0, 0, 0, 0};
+    float weight[4] = {0.f, 0.f, 0.f, 0.f};
+};
+
+/// The reads of watched parameters that a plain render makes (the backward pass in lanes,
+/// wavefront.h, watches the differentiated ones): how many, and the last.
+struct ParamReadLog {
+    const char *watched = nullptr;  ///< per parameter: nonzero where reads are logged
+    int count = 0;
+    ParamRead last;
+
+    void note(int p, int channels, int n, const int64_t *index, const float *weight) {
+        ++count;
+        last.param = p, last.channels = channels, last.n = n;
+        for (int k = 0; k < n; ++k) {
+            last.offset[k] = index ? index[k] * channels : 0;
+            last.weight[k] = weight ? weight[k] : 1.f;
+        }
+    }
+};
+
 namespace detail {
 template <typename T>
 float mean_of(const T *d, int64_t n) {
@@ -30,12 +55,20 @@ template <typename T>
 struct Params<RGB<T>> {
     std::vector<const T *> data;
     std::vector<int64_t> numel;
+    ParamReadLog *log = nullptr;  ///< if set, notes the reads of the parameters it watches
 
     /// RGB value of a parameter of 3 entries, or a scalar broadcast to RGB.
-    RGB<T> spectrum(int p) const { return value_of(data[p], numel[p]); }
-    T real(int p) const { return data[p][0]; }
+    RGB<T> spectrum(int p) const {
+        if (log && log->watched[p]) log->note(p, numel[p] == 1 ? 1 : 3, 1, nullptr, nullptr);
+        return value_of(data[p], numel[p]);
+    }
+    T real(int p) const {
+        if (log && log->watched[p]) log->note(p, 1, 1, nullptr, nullptr);
+        return data[p][0];
+    }
     /// Weighted sum of `n` texels (pixel indices) of an (H, W, C) bitmap parameter.
     RGB<T> bilinear(int p, int channels, const int64_t *index, const float *weight, int n) const {
+        if (log && log->watched[p]) log->note(p, channels, n, index, weight);
         return gather(data[p], channels, index, weight, n);
     }
 

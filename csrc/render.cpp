@@ -445,6 +445,26 @@ void render_jvp(const RenderContext<Dual<T>> &ctx, const Camera &camera,
     }
 }
 
+namespace {
+
+/// Whether a material input may read a parameter marked in `watched`.
+bool reads_watched(const Scene &scene, const TextureRef &r, const std::vector<char> &watched) {
+    auto marked = [&](int p) { return p >= 0 && watched[size_t(p)] != 0; };
+    if (r.attribute >= 0) {
+        for (const Shape &shape : scene.geometry.shapes)
+            if (marked(shape.attribute_param[0]) || marked(shape.attribute_param[1])) return true;
+        return false;
+    }
+    if (r.texture >= 0) {
+        const Texture &t = scene.textures[size_t(r.texture)];
+        if (t.type == TextureType::Checkerboard) return marked(t.checkerboard.color0) || marked(t.checkerboard.color1);
+        return marked(t.bitmap.param);
+    }
+    return marked(r.param);
+}
+
+}  // namespace
+
 template <typename T>
 void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &camera,
                 const IntegratorSettings &cfg, const RenderRequest &req, const T *adjoint,
@@ -488,8 +508,27 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     int n_workers = std::max(1, pool.workers);
     int n_tiles = tiles.nx * tiles.ny;
     std::vector<std::vector<double>> buffers(n_workers);
+    // The backward pass in lanes (WavefrontVertex) for float renders in the wavefront's scenes
+    // when every differentiated parameter is read at trace time (the wavefront reads roughness
+    // and emitter radiance once, when it flattens the scene).
+    std::optional<WavefrontScene> wavefront;
+    std::vector<char> watched(n_params, 0);
+    if constexpr (std::is_same_v<T, float>) {
+        bool lanes = true;
+        for (size_t p = 0; p < n_params; ++p) watched[p] = grads[p] != nullptr;
+        for (const BSDF &b : scene.bsdfs) {
+            lanes = lanes && (b.alpha < 0 || !watched[size_t(b.alpha)]);
+            // (Other BSDFs' inputs are read at trace time, but the tape would re-trace all
+            // paths that reach them.)
+            if (b.type != BSDFType::Diffuse)
+                for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
+                    lanes = lanes && !reads_watched(scene, *r, watched);
+        }
+        for (const Emitter &e : scene.emitters) lanes = lanes && (e.radiance < 0 || !watched[size_t(e.radiance)]);
+        if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
+    }
     std::atomic<int> next_worker{0};
-    std::atomic<uint64_t> rays{0}, nonfinite{0};
+    std::atomic<uint64_t> rays{0}, nonfinite{0}, lane_paths{0}, tape_paths{0};
     pool.run([&] {
         int w = next_worker++;
         if (w >= n_workers) return;
@@ -503,6 +542,76 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         for (size_t p = 0; p < n_params; ++p)
             if (grads[p]) params.grad[p] = buffer.data() + offset[p];
         RenderContext<Var<T>> ctx(scene, params);
+        // Re-trace a sample's path with the tape, recording only what depends on
+        // differentiated parameters, then push its adjoint back along it.
+        auto tape_sample = [&](int px, int py, uint64_t key, int s, const RGB<T> &dL) {
+            Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
+            Vec2 pos = camera.sample_position(px, py, sampler);
+            tape_reset<T>();
+            ++tape_paths;
+            Var<T> L = trace(ctx, camera, cfg, pos, sampler);
+            if (SpectrumTraits<Var<T>>::is_finite(L)) {
+                L.backward(dL);
+            } else {
+                ++dropped;
+            }
+        };
+        // In lanes: batches of samples traced by the float wavefront, each vertex of a
+        // differentiated diffuse reflectance depositing dL . (L - L_before) / rho into what it
+        // read; the tape re-traces the paths that read those parameters otherwise, or where
+        // rho has a zero channel (the quotient fails).
+        std::optional<RenderContext<RGB<float>>> lanes_ctx;
+        ParamReadLog log;
+        log.watched = watched.data();
+        WavefrontSample batch[WavefrontBatch];
+        uint64_t keys[WavefrontBatch];
+        RGB<T> adjoints[WavefrontBatch];
+        Vec2 positions[WavefrontBatch];
+        RGB<float> radiance[WavefrontBatch];
+        WavefrontRecord record;
+        int n_batch = 0;
+        if constexpr (std::is_same_v<T, float>) {
+            if (wavefront) {
+                lanes_ctx.emplace(scene, values);
+                lanes_ctx->params.log = &log;
+            }
+        }
+        auto flush = [&] {
+            if constexpr (std::is_same_v<T, float>) {
+                trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
+                for (const WavefrontVertex &v : record.vertices)
+                    for (int c = 0; c < 3; ++c)
+                        if (v.rho[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                for (int k = 0; k < n_batch; ++k) {
+                    lane_paths += record.tape[size_t(k)] ? 0 : 1;
+                    if (record.tape[size_t(k)]) {
+                        tape_sample(batch[k].px, batch[k].py, keys[k], batch[k].s, adjoints[k]);
+                    } else if (!sample_is_finite(radiance[k])) {
+                        ++dropped;
+                        record.tape[size_t(k)] = 1;  // (no deposits)
+                    }
+                }
+                for (const WavefrontVertex &v : record.vertices) {
+                    if (record.tape[size_t(v.seq)]) continue;
+                    const RGB<float> &L = radiance[v.seq];
+                    const RGB<T> &dL = adjoints[v.seq];
+                    double g[3];
+                    for (int c = 0; c < 3; ++c)
+                        g[c] = double(dL[c]) * (double(L[c]) - double(v.L_before[c])) / double(v.rho[c]);
+                    double *grad = params.grad[size_t(v.read.param)];
+                    for (int i = 0; i < v.read.n; ++i) {
+                        double w = double(v.read.weight[i]);
+                        double *texel = grad + v.read.offset[i];
+                        if (v.read.channels == 1) {
+                            texel[0] += w * (g[0] + g[1] + g[2]);
+                        } else {
+                            for (int c = 0; c < 3; ++c) texel[c] += w * g[c];
+                        }
+                    }
+                }
+            }
+            n_batch = 0;
+        };
         // Static, interleaved units of work, a unit being one sample index s in every pixel
         // of a tile: worker w always sums the same paths in the same order, so gradients are
         // bitwise reproducible for a given number of workers, and each tile's paths are
@@ -516,17 +625,17 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 Vec2 pos = camera.sample_position(px, py, sampler);
                 RGB<T> dL = gather(px, py, pos);
                 if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
-                // Re-trace the path recording only what depends on differentiated
-                // parameters, then push the sample's adjoint back along it.
-                tape_reset<T>();
-                Var<T> L = trace(ctx, camera, cfg, pos, sampler);
-                if (SpectrumTraits<Var<T>>::is_finite(L)) {
-                    L.backward(dL);
-                } else {
-                    ++dropped;
+                if (!lanes_ctx) {
+                    tape_sample(px, py, key, s, dL);
+                    return;
                 }
+                batch[n_batch] = {px, py, PixelSeed(req.seed, key), s};
+                keys[n_batch] = key;
+                adjoints[n_batch++] = dL;
+                if (n_batch == WavefrontBatch) flush();
             });
         }
+        if (n_batch > 0) flush();
         tape_reset<T>();
         rays += rays_traced - rays_before;
         nonfinite += dropped;
@@ -543,6 +652,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     }
     if (req.rays) *req.rays = rays;
     if (req.nonfinite) *req.nonfinite = nonfinite;
+    if (req.lane_paths) *req.lane_paths = lane_paths;
+    if (req.tape_paths) *req.tape_paths = tape_paths;
 }
 
 template void render_fwd<RGB<float>>(const RenderContext<RGB<float>> &, const Camera &,

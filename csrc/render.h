@@ -5,9 +5,11 @@
 // in double precision in an order fixed by the image, not by the threads, so an image is
 // bitwise identical for any number of threads.
 //   render_fwd: the image, for S = RGB<float> / RGB<double>;
-//   render_bwd: radiative backpropagation: re-trace independent paths from the camera with the
-//               tape type Var<T>, each carrying the adjoint its splat gathers from the pixels
-//               it reaches (the transpose of the splat), and accumulate parameter gradients;
+//   render_bwd: radiative backpropagation: re-trace independent paths from the camera, each
+//               carrying the adjoint its splat gathers from the pixels it reaches (the
+//               transpose of the splat), and accumulate parameter gradients: in lanes where
+//               every differentiated parameter is a diffuse reflectance (wavefront.h's
+//               WavefrontVertex), else with the tape type Var<T>;
 //   render_jvp: the image and its directional derivative, with the dual type Dual<T>.
 #pragma once
 
@@ -26,6 +28,9 @@ struct RenderRequest {
     /// If set, receives the number of samples dropped because their value was not finite
     /// (NaN or infinite radiance arising inside the integrator).
     uint64_t *nonfinite = nullptr;
+    /// If set, receive the number of paths render_bwd traced in lanes (wavefront.h's
+    /// WavefrontVertex) and with the tape.
+    uint64_t *lane_paths = nullptr, *tape_paths = nullptr;
 };
 
 /// Runs the given job once on each of `workers()` threads of the caller's pool and waits.

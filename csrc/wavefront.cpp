@@ -698,12 +698,20 @@ RBPT_INLINE Ray load_ray(const Batch &b, int k) {
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &cfg, const Camera &camera,
-                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L) {
+                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
+                     WavefrontRecord *record) {
     const Scene &scene = ctx.scene;
+    // Recording: reads of differentiated parameters other than a diffuse reflectance's send
+    // the path to the tape.
+    ParamReadLog *log = record ? ctx.params.log : nullptr;
+    if (record) record->tape.assign(size_t(n), 0), record->vertices.clear();
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
     static thread_local int side_lane[B];
+    auto unexpected_reads = [&](int k, int reads_before, int expected) {
+        if (log && log->count != reads_before + expected) record->tape[size_t(b.seq[k])] = 1;
+    };
     // Camera rays: the perspective sensor's in SIMD lanes (Sampler's stream set-up and its
     // two uniforms, Camera::perspective_ray), the others one sample at a time.
     if (camera.type == CameraType::Perspective) {
@@ -737,7 +745,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth) {
             // The last vertex max_depth allows: only the emission each ray finds (path_li's).
             for (int k = 0; k < n; ++k) {
-                int emitter;
+                int emitter, reads = log ? log->count : 0;
                 SurfaceInteraction si = scene.intersect_emitter(load_ray(b, k), &emitter);
                 if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
                     RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
@@ -745,6 +753,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                                                    Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                     b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
                 }
+                unexpected_reads(k, reads, 0);
                 finish(k);
             }
             break;
@@ -764,6 +773,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         for (int k = 0; k < n; ++k) {
             b.shade[k] = 0, b.mat[k] = 0;
             if (b.prim[k] == ~0u) continue;  // escaped (the wavefront's scenes have no environment)
+            const int reads = log ? log->count : 0;
             SurfaceInteraction si;
             if (!b.done[k]) {
                 Hit hit;
@@ -792,6 +802,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 store_path(side, n_side, path, ray, sampler);
                 side.seq[n_side] = b.seq[k];
                 side_lane[n_side++] = k;
+                unexpected_reads(k, reads, 0);
                 continue;
             }
             // The vector stage shades it, with the reflectance and transmittance looked up here.
@@ -806,12 +817,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             // specular reflectance; t: the dielectric's transmittance, roughplastic's
             // specular reflectance)
             bool base = lane == WavefrontScene::Diffuse || lane == WavefrontScene::RoughPlastic;
+            const int reads_a = log ? log->count : 0;
             Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
+            int expected = 0;
+            if (log && lane == WavefrontScene::Diffuse && log->count == reads_a + 1) {
+                // A differentiated diffuse reflectance: the vertex, for render_bwd's deposit.
+                record->vertices.push_back({b.seq[k], {b.Lr[k], b.Lg[k], b.Lb[k]}, {a.v[0], a.v[1], a.v[2]}, log->last});
+                expected = 1;
+            }
             if (lane == WavefrontScene::Glass || lane == WavefrontScene::RoughPlastic) {
                 Color3f t = lookup(lane == WavefrontScene::Glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
                 b.tr[k] = t.v[0], b.tg[k] = t.v[1], b.tb[k] = t.v[2];
             }
+            unexpected_reads(k, reads, expected);
             b.mat[k] = shape.bsdf;
             b.shade[k] = 1;
         }

@@ -22,7 +22,8 @@
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
 // every emitter is such a mesh and some BSDF is one of those; other scenes, and the autodiff
-// number types, take path_li.
+// number types, take path_li. render_bwd also traces its paths with it, for gradients of
+// diffuse reflectances (WavefrontVertex).
 #pragma once
 
 #include <optional>
@@ -95,10 +96,33 @@ struct WavefrontSample {
     int s;
 };
 
+/// What the backward pass in lanes (render_bwd) keeps of the paths it traces. A diffuse
+/// reflectance rho enters a path's radiance linearly: every contribution gathered after its
+/// vertex (the emitter sample there and all later emission) is a product with one factor rho,
+/// the throughput's (a cosine-sampled diffuse weight is rho itself), the rest detached
+/// (directions, MIS weights, roulette). So dL/drho = (L - L_before) / rho per channel, with
+/// L_before the radiance gathered before the vertex, and a parameter read there receives
+/// dL . (L - L_before) / rho times its read's weights: no tape.
+struct WavefrontVertex {
+    int seq;             ///< the sample's index in the caller's arrays
+    float L_before[3];   ///< the path's radiance before this vertex's BSDF
+    float rho[3];        ///< the diffuse reflectance there
+    ParamRead read;      ///< the differentiated parameter it came from
+};
+struct WavefrontRecord {
+    std::vector<WavefrontVertex> vertices;
+    /// Per sample: 1 where its path read a differentiated parameter in any other way (then
+    /// the tape re-traces it: see render_bwd).
+    std::vector<char> tape;
+};
+
 /// Trace `n` <= WavefrontBatch samples: their film positions into pos[i] and radiance into
 /// L[i], as the scalar loop (Sampler, Camera::sample_position, sample_ray, path_li) would.
+/// With `record` (the backward pass in lanes; ctx.params.log watching the differentiated
+/// parameters), also the vertices of diffuse reflectances read from those parameters.
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &cfg, const Camera &camera,
-                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L);
+                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
+                     WavefrontRecord *record = nullptr);
 
 }  // namespace rbpt

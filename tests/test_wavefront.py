@@ -97,9 +97,20 @@ def test02_wavefront_is_deterministic_across_threads(tmp_path):
     assert torch.equal(one, two)
 
 
+def backward(scene, keys, spp=8, seed=4):
+    """The gradients of an L2 loss at `keys` (render_bwd with `seed`), and the numbers of
+    paths the backward pass traced in lanes and with the tape."""
+    image = tr.render(scene, spp=spp, seed=1).detach()
+    needs = [k in keys for k in scene._keys]
+    grads, lanes, taped = _C.render_bwd_paths(scene._native, scene.sensor.native(), scene.integrator.native(),
+                                              scene.param_list(), needs, 2 * (image - 0.3), spp, seed)
+    return {k: g for k, g in zip(scene._keys, grads) if g is not None}, lanes, taped
+
+
 def test03_gradients_with_the_wavefront_forward_pass(tmp_path, monkeypatch):
-    # The forward pass of a differentiable render takes the wavefront; the backward pass the
-    # scalar integrator's autodiff type. The gradient does not depend on which forward ran.
+    # The forward pass of a differentiable render takes the wavefront, or the scalar
+    # integrator: the gradient does not depend on which forward ran (the backward pass traces
+    # its own paths; with TORCH_RBPT_WAVEFRONT=0 it takes the tape, else lanes).
     grads = []
     for mode in ("1", "0"):
         monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", mode)
@@ -109,7 +120,68 @@ def test03_gradients_with_the_wavefront_forward_pass(tmp_path, monkeypatch):
         image = tr.render(scene, spp=8, seed=1)
         (image ** 2).mean().backward()
         grads.append(scene.params[key].grad.clone())
-    assert torch.equal(grads[0], grads[1]) and float(grads[0].abs().sum()) > 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=0)
+    assert float(grads[0].abs().sum()) > 0
+
+
+DIFFUSE_KEYS = ["floor.bsdf.reflectance.data", "back.bsdf.brdf_0.reflectance.data", "side.bsdf.reflectance.value",
+                "quad.bsdf.reflectance.value", "checks.bsdf.brdf_0.reflectance.color0.value",
+                "checks.bsdf.brdf_0.reflectance.color1.value", "ball.bsdf.reflectance.color0.value",
+                "ball.bsdf.reflectance.color1.value", "colors.vertex_color"]
+
+
+def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
+    # Diffuse reflectances (RGB and scalar constants, bitmaps bilinear and nearest,
+    # checkerboards, a mesh attribute) differentiated in lanes, each vertex depositing
+    # dL . (L - L_before) / rho: the tape's gradients on the same paths, to float rounding.
+    scene = textured_room(tmp_path)
+    lanes_grads, lanes, taped = backward(scene, DIFFUSE_KEYS)
+    assert lanes == 21 * 13 * 8 and taped == 0
+    again, _, _ = backward(scene, DIFFUSE_KEYS)
+    assert all(torch.equal(lanes_grads[k], again[k]) for k in DIFFUSE_KEYS)
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, lanes0, taped0 = backward(scene, DIFFUSE_KEYS)
+    assert lanes0 == 0 and taped0 == lanes
+    for k in DIFFUSE_KEYS:
+        scale = float(tape_grads[k].abs().max())
+        assert scale > 0, k
+        torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+    # A reflectance with a zero channel: its paths go to the tape (the quotient fails),
+    # which still gives that channel's derivative.
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "1")
+    with torch.no_grad():
+        scene.params["side.bsdf.reflectance.value"].copy_(torch.tensor([0.2, 0.0, 0.3]))
+    lanes_grads, lanes, taped = backward(scene, DIFFUSE_KEYS)
+    assert lanes > 0 and taped > 0 and lanes + taped == 21 * 13 * 8
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, DIFFUSE_KEYS)
+    assert float(tape_grads["side.bsdf.reflectance.value"][1].abs()) > 0
+    for k in DIFFUSE_KEYS:
+        torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4,
+                                   atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
+
+
+@pytest.mark.parametrize("key", ["quad.emitter.radiance.value", "mirror.bsdf.specular_reflectance.value",
+                                 "metal.bsdf.alpha.value", "shiny.bsdf.diffuse_reflectance.value"])
+def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
+    # Emitter radiance, roughness and non-diffuse BSDFs' inputs (even roughplastic's diffuse
+    # reflectance) enter the path otherwise than as a diffuse reflectance: the whole backward
+    # pass takes the tape, whatever else is differentiated.
+    scene = room(tmp_path, {"max_depth": 5},
+                 mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
+                         "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
+                 metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
+                        "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}},
+                 shiny={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.02, 0.5]).rotate([1, 0, 0], -90).scale(0.3),
+                        "bsdf": {"type": "roughplastic", "distribution": "ggx",
+                                 "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}})
+    keys = ["floor.bsdf.reflectance.value", key]
+    assert all(k in scene._keys for k in keys), scene._keys
+    grads, lanes, taped = backward(scene, keys)
+    assert lanes == 0 and taped == 21 * 13 * 8
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, keys)
+    assert all(torch.equal(grads[k], tape_grads[k]) and float(grads[k].abs().sum()) > 0 for k in keys)
 
 
 @pytest.mark.skipif(not (SHARED / "cornell-box" / "scene_v3.xml").exists(), reason="shared scenes not present")
@@ -194,15 +266,15 @@ end_header
 """
 
 
-def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkeypatch):
-    # A diffuse reflectance that is a bitmap (bilinear and nearest, wrapped, with to_uv), a
-    # checkerboard or a mesh attribute is looked up in the trace stage and shaded in lanes.
+def textured_room(tmp_path, integrator=None):
+    """The room with diffuse reflectances that are bitmaps (bilinear and nearest, wrapped,
+    with to_uv), checkerboards and a mesh attribute."""
     texels = torch.from_numpy(np.random.default_rng(3).uniform(0.05, 0.95, (5, 7, 3)).astype(np.float32))
     tr.write_image(tmp_path / "t.exr", texels)
     (tmp_path / "c.ply").write_text(COLOR_PLY)
     diffuse = lambda texture: {"type": "diffuse", "reflectance": texture}  # noqa: E731
-    scene = room(
-        tmp_path, {"max_depth": 6},
+    return room(
+        tmp_path, integrator or {"max_depth": 6},
         floor={"type": "rectangle", "to_world": tr.Transform.rotate([1, 0, 0], -90).scale(2),
                "bsdf": diffuse({"type": "bitmap", "filename": str(tmp_path / "t.exr"),
                                 "to_uv": tr.Transform.scale([3, 2, 1])})},
@@ -216,6 +288,12 @@ def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkey
               "bsdf": diffuse({"type": "checkerboard", "to_uv": tr.Transform.scale([4, 4, 1])})},
         colors={"type": "ply", "filename": str(tmp_path / "c.ply"),
                 "bsdf": {"type": "twosided", "bsdf": diffuse({"type": "mesh_attribute", "name": "vertex_color"})}})
+
+
+def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkeypatch):
+    # A diffuse reflectance that is a bitmap, a checkerboard or a mesh attribute is looked up
+    # in the trace stage and shaded in lanes.
+    scene = textured_room(tmp_path)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=6)
     assert float(scalar.mean()) > 0.01
     assert torch.equal(wavefront, scalar)
