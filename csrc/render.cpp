@@ -509,8 +509,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     int n_tiles = tiles.nx * tiles.ny;
     std::vector<std::vector<double>> buffers(n_workers);
     // The backward pass in lanes (WavefrontVertex) for float renders in the wavefront's scenes
-    // when every differentiated parameter is read at trace time (the wavefront reads roughness
-    // and emitter radiance once, when it flattens the scene).
+    // when no differentiated parameter is a roughness (which the wavefront reads once, when it
+    // flattens the scene, and which enters nonlinearly) or another BSDF's input.
     std::optional<WavefrontScene> wavefront;
     std::vector<char> watched(n_params, 0);
     if constexpr (std::is_same_v<T, float>) {
@@ -524,7 +524,14 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
                     lanes = lanes && !reads_watched(scene, *r, watched);
         }
-        for (const Emitter &e : scene.emitters) lanes = lanes && (e.radiance < 0 || !watched[size_t(e.radiance)]);
+        // A radiance with a zero channel: the wavefront's emitter samples skip that emitter
+        // (its sample weight is null), where the tape still traces their shadow rays for the
+        // derivative.
+        for (const Emitter &e : scene.emitters) {
+            if (e.radiance < 0 || !watched[size_t(e.radiance)]) continue;
+            RGB<float> Le = Params<RGB<float>>::value_of(values.data[size_t(e.radiance)], values.numel[size_t(e.radiance)]);
+            lanes = lanes && Le[0] != 0.f && Le[1] != 0.f && Le[2] != 0.f;
+        }
         if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
     }
     std::atomic<int> next_worker{0};
@@ -558,8 +565,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         };
         // In lanes: batches of samples traced by the float wavefront, each vertex of a
         // differentiated diffuse reflectance depositing dL . (L - L_before) / rho into what it
-        // read; the tape re-traces the paths that read those parameters otherwise, or where
-        // rho has a zero channel (the quotient fails).
+        // read, each emission of a differentiated radiance dL . C / Le; the tape re-traces the
+        // paths that read those parameters otherwise, or where rho or Le has a zero channel
+        // (the quotient fails).
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
         ParamReadLog log;
         log.watched = watched.data();
@@ -581,7 +589,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
                 for (const WavefrontVertex &v : record.vertices)
                     for (int c = 0; c < 3; ++c)
-                        if (v.rho[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                        if (v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
@@ -596,8 +604,10 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     const RGB<float> &L = radiance[v.seq];
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];
-                    for (int c = 0; c < 3; ++c)
-                        g[c] = double(dL[c]) * (double(L[c]) - double(v.L_before[c])) / double(v.rho[c]);
+                    for (int c = 0; c < 3; ++c) {
+                        double C = v.to_end ? double(L[c]) - double(v.gathered[c]) : double(v.gathered[c]);
+                        g[c] = double(dL[c]) * C / double(v.value[c]);
+                    }
                     double *grad = params.grad[size_t(v.read.param)];
                     for (int i = 0; i < v.read.n; ++i) {
                         double w = double(v.read.weight[i]);

@@ -81,6 +81,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         const Geometry &g = scene.geometry;
         WavefrontScene::Light light;
         light.radiance = ctx.params.spectrum(e.radiance);
+        light.radiance_param = e.radiance;
         light.has_normals = shape.has_normals;
         light.flip_normals = shape.flip_normals;
         light.area = shape.area;
@@ -130,6 +131,7 @@ struct Batch {
     int alive[B];  ///< whether the path goes on after this bounce's BSDF sample and roulette
     // The emitter sample's shadow ray and what it adds if nothing blocks it.
     int shadow[B];
+    int light[B];  ///< the emitter sampled
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
 };
@@ -390,6 +392,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float sdist = norm(sd);
         sd = sd / sdist;
         b.shadow[k] = sampled != 0.f;
+        b.light[k] = index;
         b.sox[k] = so.x, b.soy[k] = so.y, b.soz[k] = so.z;
         b.sdx[k] = sd.x, b.sdy[k] = sd.y, b.sdz[k] = sd.z;
         b.stmax[k] = sdist * (1.f - ShadowEpsilon);
@@ -709,6 +712,14 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // each: no stack frame of their own).
     static thread_local Batch b, side;
     static thread_local int side_lane[B];
+    // The emission Le found by lane k's ray, where its radiance read a differentiated
+    // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
+    auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
+        if (!log || log->count != reads_before + 1 || log->last.param != e.radiance) return 0;
+        RGB<float> radiance = Params<RGB<float>>::value_of(ctx.params.data[size_t(e.radiance)], ctx.params.numel[size_t(e.radiance)]);
+        record->vertices.push_back({b.seq[k], 0, {Le[0], Le[1], Le[2]}, {radiance[0], radiance[1], radiance[2]}, log->last});
+        return 1;
+    };
     auto unexpected_reads = [&](int k, int reads_before, int expected) {
         if (log && log->count != reads_before + expected) record->tape[size_t(b.seq[k])] = 1;
     };
@@ -745,15 +756,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth) {
             // The last vertex max_depth allows: only the emission each ray finds (path_li's).
             for (int k = 0; k < n; ++k) {
-                int emitter, reads = log ? log->count : 0;
+                int emitter, reads = log ? log->count : 0, expected = 0;
                 SurfaceInteraction si = scene.intersect_emitter(load_ray(b, k), &emitter);
                 if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
                     RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
                                                    b.prev_delta[k] != 0, b.prev_pdf[k],
                                                    Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                     b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+                    expected = emission_read(k, reads, scene.emitters[emitter], Le);
                 }
-                unexpected_reads(k, reads, 0);
+                unexpected_reads(k, reads, expected);
                 finish(k);
             }
             break;
@@ -774,6 +786,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.shade[k] = 0, b.mat[k] = 0;
             if (b.prim[k] == ~0u) continue;  // escaped (the wavefront's scenes have no environment)
             const int reads = log ? log->count : 0;
+            int expected = 0;
             SurfaceInteraction si;
             if (!b.done[k]) {
                 Hit hit;
@@ -788,6 +801,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                                                b.prev_delta[k] != 0, b.prev_pdf[k],
                                                Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                 b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+                expected = emission_read(k, reads, scene.emitters[shape.emitter], Le);
             }
             const BSDF &bsdf = scene.bsdfs[shape.bsdf];
             const WavefrontScene::Lane lane = WavefrontScene::Lane(ws.materials[shape.bsdf].lane);
@@ -802,7 +816,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 store_path(side, n_side, path, ray, sampler);
                 side.seq[n_side] = b.seq[k];
                 side_lane[n_side++] = k;
-                unexpected_reads(k, reads, 0);
+                unexpected_reads(k, reads, expected);
                 continue;
             }
             // The vector stage shades it, with the reflectance and transmittance looked up here.
@@ -820,11 +834,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int reads_a = log ? log->count : 0;
             Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
-            int expected = 0;
             if (log && lane == WavefrontScene::Diffuse && log->count == reads_a + 1) {
                 // A differentiated diffuse reflectance: the vertex, for render_bwd's deposit.
-                record->vertices.push_back({b.seq[k], {b.Lr[k], b.Lg[k], b.Lb[k]}, {a.v[0], a.v[1], a.v[2]}, log->last});
-                expected = 1;
+                record->vertices.push_back({b.seq[k], 1, {b.Lr[k], b.Lg[k], b.Lb[k]}, {a.v[0], a.v[1], a.v[2]}, log->last});
+                ++expected;
             }
             if (lane == WavefrontScene::Glass || lane == WavefrontScene::RoughPlastic) {
                 Color3f t = lookup(lane == WavefrontScene::Glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
@@ -850,7 +863,18 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 ray.o = {b.sox[k], b.soy[k], b.soz[k]};
                 ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
                 ray.tmax = b.stmax[k];
-                if (!scene.occluded(ray)) b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
+                if (!scene.occluded(ray)) {
+                    b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
+                    const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
+                    if (log && log->watched[light.radiance_param]) {
+                        // The emitter sample's contribution, for render_bwd's deposit.
+                        ParamRead read;
+                        read.param = light.radiance_param, read.n = 1, read.weight[0] = 1.f;
+                        read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
+                        const Color3f &Le = light.radiance;
+                        record->vertices.push_back({b.seq[k], 0, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
+                    }
+                }
             }
             if (!b.alive[k]) {
                 finish(k);

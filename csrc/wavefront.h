@@ -56,6 +56,7 @@ struct WavefrontScene {
     };
     struct Light {
         Color3f radiance;
+        int radiance_param;  ///< Emitter::radiance
         int has_normals, flip_normals;  // (ints, not bools: the vector loop gathers them)
         float area;
     };
@@ -102,12 +103,15 @@ struct WavefrontSample {
 /// the throughput's (a cosine-sampled diffuse weight is rho itself), the rest detached
 /// (directions, MIS weights, roulette). So dL/drho = (L - L_before) / rho per channel, with
 /// L_before the radiance gathered before the vertex, and a parameter read there receives
-/// dL . (L - L_before) / rho times its read's weights: no tape.
+/// dL . (L - L_before) / rho times its read's weights: no tape. Likewise an emitter's
+/// radiance Le: each contribution C of its emission (found by a ray, or by an emitter
+/// sample) gives dL . C / Le.
 struct WavefrontVertex {
-    int seq;             ///< the sample's index in the caller's arrays
-    float L_before[3];   ///< the path's radiance before this vertex's BSDF
-    float rho[3];        ///< the diffuse reflectance there
-    ParamRead read;      ///< the differentiated parameter it came from
+    int seq;            ///< the sample's index in the caller's arrays
+    int to_end;         ///< 1: a reflectance, `gathered` is L_before; 0: an emission, `gathered` is C
+    float gathered[3];
+    float value[3];     ///< rho, or Le
+    ParamRead read;     ///< the differentiated parameter it came from
 };
 struct WavefrontRecord {
     std::vector<WavefrontVertex> vertices;
@@ -119,7 +123,8 @@ struct WavefrontRecord {
 /// Trace `n` <= WavefrontBatch samples: their film positions into pos[i] and radiance into
 /// L[i], as the scalar loop (Sampler, Camera::sample_position, sample_ray, path_li) would.
 /// With `record` (the backward pass in lanes; ctx.params.log watching the differentiated
-/// parameters), also the vertices of diffuse reflectances read from those parameters.
+/// parameters), also the vertices of diffuse reflectances and the emission read from those
+/// parameters.
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &cfg, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,

@@ -127,13 +127,15 @@ def test03_gradients_with_the_wavefront_forward_pass(tmp_path, monkeypatch):
 DIFFUSE_KEYS = ["floor.bsdf.reflectance.data", "back.bsdf.brdf_0.reflectance.data", "side.bsdf.reflectance.value",
                 "quad.bsdf.reflectance.value", "checks.bsdf.brdf_0.reflectance.color0.value",
                 "checks.bsdf.brdf_0.reflectance.color1.value", "ball.bsdf.reflectance.color0.value",
-                "ball.bsdf.reflectance.color1.value", "colors.vertex_color"]
+                "ball.bsdf.reflectance.color1.value", "colors.vertex_color", "quad.emitter.radiance.value",
+                "strip.emitter.radiance.value"]
 
 
 def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
     # Diffuse reflectances (RGB and scalar constants, bitmaps bilinear and nearest,
-    # checkerboards, a mesh attribute) differentiated in lanes, each vertex depositing
-    # dL . (L - L_before) / rho: the tape's gradients on the same paths, to float rounding.
+    # checkerboards, a mesh attribute) and emitter radiances (RGB and scalar) differentiated
+    # in lanes, each vertex depositing dL . (L - L_before) / rho and each emission dL . C / Le:
+    # the tape's gradients on the same paths, to float rounding.
     scene = textured_room(tmp_path)
     lanes_grads, lanes, taped = backward(scene, DIFFUSE_KEYS)
     assert lanes == 21 * 13 * 8 and taped == 0
@@ -146,27 +148,30 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
         scale = float(tape_grads[k].abs().max())
         assert scale > 0, k
         torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
-    # A reflectance with a zero channel: its paths go to the tape (the quotient fails),
-    # which still gives that channel's derivative.
+    # A reflectance and a radiance with a zero channel: their paths go to the tape (the
+    # quotient fails), which still gives that channel's derivative (the whole pass, for the
+    # radiance: see test10).
     monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "1")
     with torch.no_grad():
         scene.params["side.bsdf.reflectance.value"].copy_(torch.tensor([0.2, 0.0, 0.3]))
-    lanes_grads, lanes, taped = backward(scene, DIFFUSE_KEYS)
+    keys = DIFFUSE_KEYS
+    lanes_grads, lanes, taped = backward(scene, keys)
     assert lanes > 0 and taped > 0 and lanes + taped == 21 * 13 * 8
     monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
-    tape_grads, _, _ = backward(scene, DIFFUSE_KEYS)
+    tape_grads, _, _ = backward(scene, keys)
     assert float(tape_grads["side.bsdf.reflectance.value"][1].abs()) > 0
-    for k in DIFFUSE_KEYS:
+    for k in keys:
         torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4,
                                    atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
 
 
-@pytest.mark.parametrize("key", ["quad.emitter.radiance.value", "mirror.bsdf.specular_reflectance.value",
+@pytest.mark.parametrize("key", ["mirror.bsdf.specular_reflectance.value", "panel.emitter.radiance.value",
                                  "metal.bsdf.alpha.value", "shiny.bsdf.diffuse_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
-    # Emitter radiance, roughness and non-diffuse BSDFs' inputs (even roughplastic's diffuse
-    # reflectance) enter the path otherwise than as a diffuse reflectance: the whole backward
-    # pass takes the tape, whatever else is differentiated.
+    # Roughness and non-diffuse BSDFs' inputs (even roughplastic's diffuse reflectance)
+    # enter the path otherwise than as a diffuse reflectance; a radiance with a zero channel
+    # is skipped by the wavefront's emitter samples: the whole backward pass takes the tape,
+    # whatever else is differentiated.
     scene = room(tmp_path, {"max_depth": 5},
                  mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
                          "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
@@ -175,6 +180,9 @@ def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, k
                  shiny={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.02, 0.5]).rotate([1, 0, 0], -90).scale(0.3),
                         "bsdf": {"type": "roughplastic", "distribution": "ggx",
                                  "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}})
+    if key == "panel.emitter.radiance.value":
+        with torch.no_grad():
+            scene.params[key].copy_(torch.tensor([1.0, 0.0, 6.0]))
     keys = ["floor.bsdf.reflectance.value", key]
     assert all(k in scene._keys for k in keys), scene._keys
     grads, lanes, taped = backward(scene, keys)
