@@ -704,8 +704,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
                      WavefrontRecord *record) {
     const Scene &scene = ctx.scene;
-    // Recording: reads of differentiated parameters other than a diffuse reflectance's send
-    // the path to the tape.
+    // Recording: reads of differentiated parameters other than a diffuse reflectance's or an
+    // emission's send the path to the tape.
     ParamReadLog *log = record ? ctx.params.log : nullptr;
     if (record) record->tape.assign(size_t(n), 0), record->vertices.clear();
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
