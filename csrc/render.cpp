@@ -520,7 +520,11 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             lanes = lanes && (b.alpha < 0 || !watched[size_t(b.alpha)]);
             // (Other BSDFs' inputs are read at trace time, but the tape would re-trace all
             // paths that reach them.)
-            if (b.type != BSDFType::Diffuse)
+            // (The conductors' specular reflectance is linear as a diffuse reflectance is,
+            // where the wavefront shades them: mirrors and GGX.)
+            bool linear = b.type == BSDFType::Diffuse || b.type == BSDFType::Conductor ||
+                          (b.type == BSDFType::RoughConductor && b.distribution == MicrofacetType::GGX);
+            if (!linear)
                 for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
                     lanes = lanes && !reads_watched(scene, *r, watched);
         }

@@ -834,8 +834,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int reads_a = log ? log->count : 0;
             Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
-            if (log && lane == WavefrontScene::Diffuse && log->count == reads_a + 1) {
-                // A differentiated diffuse reflectance: the vertex, for render_bwd's deposit.
+            // (The diffuse reflectance, and the mirror's and GGX conductor's specular
+            // reflectance, are one factor of all the path gathers after the vertex.)
+            bool linear = lane == WavefrontScene::Diffuse || lane == WavefrontScene::Mirror ||
+                          lane == WavefrontScene::RoughMirror;
+            if (log && linear && log->count == reads_a + 1) {
+                // A differentiated reflectance: the vertex, for render_bwd's deposit.
                 record->vertices.push_back({b.seq[k], 1, {b.Lr[k], b.Lg[k], b.Lb[k]}, {a.v[0], a.v[1], a.v[2]}, log->last});
                 ++expected;
             }

@@ -165,11 +165,12 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
                                    atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
 
 
-@pytest.mark.parametrize("key", ["mirror.bsdf.specular_reflectance.value", "panel.emitter.radiance.value",
+@pytest.mark.parametrize("key", ["beckmann.bsdf.specular_reflectance.value", "panel.emitter.radiance.value",
                                  "metal.bsdf.alpha.value", "shiny.bsdf.diffuse_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
-    # Roughness and non-diffuse BSDFs' inputs (even roughplastic's diffuse reflectance)
-    # enter the path otherwise than as a diffuse reflectance; a radiance with a zero channel
+    # Roughness and the inputs of BSDFs other than diffuse ones, mirrors and GGX conductors
+    # (even roughplastic's diffuse reflectance, and a Beckmann conductor's, shaded aside)
+    # enter the path otherwise than as one factor of its throughput; a radiance with a zero channel
     # is skipped by the wavefront's emitter samples: the whole backward pass takes the tape,
     # whatever else is differentiated.
     scene = room(tmp_path, {"max_depth": 5},
@@ -177,6 +178,8 @@ def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, k
                          "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
                  metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
                         "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}},
+                 beckmann={"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.0, 0.15, 0.5]),
+                           "bsdf": {"type": "roughconductor", "alpha": 0.2}},
                  shiny={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.02, 0.5]).rotate([1, 0, 0], -90).scale(0.3),
                         "bsdf": {"type": "roughplastic", "distribution": "ggx",
                                  "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}})
@@ -336,3 +339,31 @@ def test08_vector_stages_vectorise(tmp_path, march):
     # no longer inlines, a load under a condition) keeps the images bitwise equal and only
     # makes them slower, which no other test sees.
     assert assert_marked_loops_vectorise("wavefront.cpp", "#pragma GCC ivdep", march, tmp_path) >= 3
+
+
+def test11_backward_in_lanes_for_conductors_specular_reflectance(tmp_path, monkeypatch):
+    # A mirror's and a GGX conductor's specular reflectance (RGB, and a checkerboard on a
+    # twosided mirror) are one factor of everything the path gathers after the vertex, as a
+    # diffuse reflectance is: lanes, with the tape's gradients.
+    scene = room(tmp_path, {"max_depth": 6},
+                 mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
+                         "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
+                 panel_mirror={"type": "rectangle",
+                               "to_world": tr.Transform.translate([0.6, 0.5, -0.5]).rotate([0, 1, 0], -40).scale(0.4),
+                               "bsdf": {"type": "twosided", "bsdf": {"type": "conductor",
+                                                                     "specular_reflectance": {"type": "checkerboard"}}}},
+                 metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
+                        "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
+                                 "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}})
+    keys = ["floor.bsdf.reflectance.value", "mirror.bsdf.specular_reflectance.value",
+            "panel_mirror.bsdf.brdf_0.specular_reflectance.color0.value",
+            "panel_mirror.bsdf.brdf_0.specular_reflectance.color1.value", "metal.bsdf.specular_reflectance.value"]
+    assert all(k in scene._keys for k in keys), scene._keys
+    grads, lanes, taped = backward(scene, keys)
+    assert lanes == 21 * 13 * 8 and taped == 0
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, keys)
+    for k in keys:
+        scale = float(tape_grads[k].abs().max())
+        assert scale > 0, k
+        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
