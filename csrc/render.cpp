@@ -521,8 +521,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             // (Other BSDFs' inputs are read at trace time, but the tape would re-trace all
             // paths that reach them.)
             // (The conductors' specular reflectance is linear as a diffuse reflectance is,
-            // where the wavefront shades them: mirrors and GGX.)
+            // where the wavefront shades them: mirrors and GGX; so are the dielectric's inputs.)
             bool linear = b.type == BSDFType::Diffuse || b.type == BSDFType::Conductor ||
+                          b.type == BSDFType::Dielectric ||
                           (b.type == BSDFType::RoughConductor && b.distribution == MicrofacetType::GGX);
             if (!linear)
                 for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
@@ -593,7 +594,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
                 for (const WavefrontVertex &v : record.vertices)
                     for (int c = 0; c < 3; ++c)
-                        if (v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                        if (v.seq >= 0 && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
@@ -604,7 +605,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     }
                 }
                 for (const WavefrontVertex &v : record.vertices) {
-                    if (record.tape[size_t(v.seq)]) continue;
+                    if (v.seq < 0 || record.tape[size_t(v.seq)]) continue;
                     const RGB<float> &L = radiance[v.seq];
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];

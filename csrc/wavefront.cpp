@@ -132,6 +132,8 @@ struct Batch {
     // The emitter sample's shadow ray and what it adds if nothing blocks it.
     int shadow[B];
     int light[B];  ///< the emitter sampled
+    float refracts[B];  ///< 1 where the BSDF sample refracted (a dielectric's transmission), else 0
+    int record_reflect[B], record_refract[B];  ///< a dielectric's WavefrontVertex entries, or -1
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
 };
@@ -446,6 +448,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float br = b.br[k] * wr, bg = b.bg[k] * wg, bb = b.bb[k] * wb;
         float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
         float path_eta = b.eta[k] * (refract != 0.f ? eta_it : 1.f);
+        b.refracts[k] = refract;  // (a float flag: an int from `refract != 0` stops the vectoriser)
         Vec3 dn = fs * bwo.x + ft * bwo.y + fn * bwo.z;
         Vec3 o = offset_p(b, k, dn);
 
@@ -834,18 +837,26 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int reads_a = log ? log->count : 0;
             Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
-            // (The diffuse reflectance, and the mirror's and GGX conductor's specular
-            // reflectance, are one factor of all the path gathers after the vertex.)
+            // (The diffuse reflectance, the mirror's and GGX conductor's specular reflectance
+            // and, on the branch it samples, the dielectric's specular reflectance or
+            // transmittance are one factor of all the path gathers after the vertex.)
+            const bool glass = lane == WavefrontScene::Glass;
             bool linear = lane == WavefrontScene::Diffuse || lane == WavefrontScene::Mirror ||
-                          lane == WavefrontScene::RoughMirror;
-            if (log && linear && log->count == reads_a + 1) {
-                // A differentiated reflectance: the vertex, for render_bwd's deposit.
-                record->vertices.push_back({b.seq[k], 1, {b.Lr[k], b.Lg[k], b.Lb[k]}, {a.v[0], a.v[1], a.v[2]}, log->last});
+                          lane == WavefrontScene::RoughMirror || glass;
+            auto keep = [&](int reads_before, const Color3f &value) {
+                // A differentiated input: the vertex, for render_bwd's deposit.
+                if (!log || !linear || log->count != reads_before + 1) return -1;
+                record->vertices.push_back({b.seq[k], 1, {b.Lr[k], b.Lg[k], b.Lb[k]}, {value.v[0], value.v[1], value.v[2]}, log->last});
                 ++expected;
-            }
-            if (lane == WavefrontScene::Glass || lane == WavefrontScene::RoughPlastic) {
-                Color3f t = lookup(lane == WavefrontScene::Glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
+                return int(record->vertices.size()) - 1;
+            };
+            b.record_reflect[k] = keep(reads_a, a);
+            b.record_refract[k] = -1;
+            if (glass || lane == WavefrontScene::RoughPlastic) {
+                const int reads_t = log ? log->count : 0;
+                Color3f t = lookup(glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
                 b.tr[k] = t.v[0], b.tg[k] = t.v[1], b.tb[k] = t.v[2];
+                if (glass) b.record_refract[k] = keep(reads_t, t);
             }
             unexpected_reads(k, reads, expected);
             b.mat[k] = shape.bsdf;
@@ -853,6 +864,14 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // Shade the other vertices in lanes; then the vertices shaded aside return.
         vertex_stage_for(ws)(b, n, ws, cfg, depth);
+        if (log) {
+            // A dielectric's vertex keeps the input of the branch it sampled.
+            for (int k = 0; k < n; ++k) {
+                if (!b.shade[k] || ws.materials[size_t(b.mat[k])].lane != WavefrontScene::Glass) continue;
+                int unused = b.refracts[k] != 0.f ? b.record_reflect[k] : b.record_refract[k];
+                if (unused >= 0) record->vertices[size_t(unused)].seq = -1;
+            }
+        }
         for (int i = 0; i < n_side; ++i) {
             const int k = side_lane[i];
             move_lane(side, i, b, k);

@@ -107,7 +107,7 @@ struct WavefrontSample {
 /// radiance Le: each contribution C of its emission (found by a ray, or by an emitter
 /// sample) gives dL . C / Le.
 struct WavefrontVertex {
-    int seq;            ///< the sample's index in the caller's arrays
+    int seq;            ///< the sample's index in the caller's arrays (-1: void)
     int to_end;         ///< 1: a reflectance, `gathered` is L_before; 0: an emission, `gathered` is C
     float gathered[3];
     float value[3];     ///< rho, or Le

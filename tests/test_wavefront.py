@@ -341,10 +341,11 @@ def test08_vector_stages_vectorise(tmp_path, march):
     assert assert_marked_loops_vectorise("wavefront.cpp", "#pragma GCC ivdep", march, tmp_path) >= 3
 
 
-def test11_backward_in_lanes_for_conductors_specular_reflectance(tmp_path, monkeypatch):
+def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
     # A mirror's and a GGX conductor's specular reflectance (RGB, and a checkerboard on a
-    # twosided mirror) are one factor of everything the path gathers after the vertex, as a
-    # diffuse reflectance is: lanes, with the tape's gradients.
+    # twosided mirror), and a dielectric's specular reflectance and transmittance on the
+    # branch its vertex sampled, are one factor of everything the path gathers after the
+    # vertex, as a diffuse reflectance is: lanes, with the tape's gradients.
     scene = room(tmp_path, {"max_depth": 6},
                  mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
                          "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
@@ -354,8 +355,14 @@ def test11_backward_in_lanes_for_conductors_specular_reflectance(tmp_path, monke
                                                                      "specular_reflectance": {"type": "checkerboard"}}}},
                  metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
                         "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
-                                 "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}})
-    keys = ["floor.bsdf.reflectance.value", "mirror.bsdf.specular_reflectance.value",
+                                 "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}},
+                 glass={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.1, 0.45, 0.6]),
+                        "bsdf": {"type": "dielectric", "int_ior": 1.5,
+                                 "specular_reflectance": {"type": "rgb", "value": [0.9, 0.95, 0.8]},
+                                 "specular_transmittance": {"type": "checkerboard", "to_uv": tr.Transform.scale([4, 4, 1])}}})
+    keys = ["glass.bsdf.specular_reflectance.value", "glass.bsdf.specular_transmittance.color0.value",
+            "glass.bsdf.specular_transmittance.color1.value",
+            "floor.bsdf.reflectance.value", "mirror.bsdf.specular_reflectance.value",
             "panel_mirror.bsdf.brdf_0.specular_reflectance.color0.value",
             "panel_mirror.bsdf.brdf_0.specular_reflectance.color1.value", "metal.bsdf.specular_reflectance.value"]
     assert all(k in scene._keys for k in keys), scene._keys
