@@ -510,25 +510,14 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     std::vector<std::vector<double>> buffers(n_workers);
     // The backward pass in lanes (WavefrontVertex) for float renders in the wavefront's scenes
     // when no differentiated parameter is a roughness (which the wavefront reads once, when it
-    // flattens the scene, and which enters nonlinearly) or another BSDF's input.
+    // flattens the scene, and which enters nonlinearly) or an input of a BSDF whose lane is
+    // not linear in its inputs.
     std::optional<WavefrontScene> wavefront;
     std::vector<char> watched(n_params, 0);
     if constexpr (std::is_same_v<T, float>) {
         bool lanes = true;
         for (size_t p = 0; p < n_params; ++p) watched[p] = grads[p] != nullptr;
-        for (const BSDF &b : scene.bsdfs) {
-            lanes = lanes && (b.alpha < 0 || !watched[size_t(b.alpha)]);
-            // (Other BSDFs' inputs are read at trace time, but the tape would re-trace all
-            // paths that reach them.)
-            // (The conductors' specular reflectance is linear as a diffuse reflectance is,
-            // where the wavefront shades them: mirrors and GGX; so are the dielectric's inputs.)
-            bool linear = b.type == BSDFType::Diffuse || b.type == BSDFType::Conductor ||
-                          b.type == BSDFType::Dielectric ||
-                          (b.type == BSDFType::RoughConductor && b.distribution == MicrofacetType::GGX);
-            if (!linear)
-                for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
-                    lanes = lanes && !reads_watched(scene, *r, watched);
-        }
+        for (const BSDF &b : scene.bsdfs) lanes = lanes && (b.alpha < 0 || !watched[size_t(b.alpha)]);
         // A radiance with a zero channel: the wavefront's emitter samples skip that emitter
         // (its sample weight is null), where the tape still traces their shadow rays for the
         // derivative.
@@ -538,6 +527,14 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             lanes = lanes && Le[0] != 0.f && Le[1] != 0.f && Le[2] != 0.f;
         }
         if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
+        // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
+        // path that reaches them.)
+        for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
+            const BSDF &b = scene.bsdfs[i];
+            if (linear_in_inputs(WavefrontScene::Lane(wavefront->materials[i].lane))) continue;
+            for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
+                if (reads_watched(scene, *r, watched)) wavefront.reset();
+        }
     }
     std::atomic<int> next_worker{0};
     std::atomic<uint64_t> rays{0}, nonfinite{0}, lane_paths{0}, tape_paths{0};
@@ -556,9 +553,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         RenderContext<Var<T>> ctx(scene, params);
         // Re-trace a sample's path with the tape, recording only what depends on
         // differentiated parameters, then push its adjoint back along it.
-        auto tape_sample = [&](int px, int py, uint64_t key, int s, const RGB<T> &dL) {
-            Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
-            Vec2 pos = camera.sample_position(px, py, sampler);
+        auto tape_sample = [&](Sampler &sampler, Vec2 pos, const RGB<T> &dL) {
             tape_reset<T>();
             ++tape_paths;
             Var<T> L = trace(ctx, camera, cfg, pos, sampler);
@@ -569,8 +564,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             }
         };
         // In lanes: batches of samples traced by the float wavefront, each vertex of a
-        // differentiated diffuse reflectance depositing dL . (L - L_before) / rho into what it
-        // read, each emission of a differentiated radiance dL . C / Le; the tape re-traces the
+        // differentiated reflectance or transmittance (linear_in_inputs) depositing
+        // dL . (L - L_before) / rho into what it read, each emission of a differentiated radiance dL . C / Le; the tape re-traces the
         // paths that read those parameters otherwise, or where rho or Le has a zero channel
         // (the quotient fails).
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
@@ -598,7 +593,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
-                        tape_sample(batch[k].px, batch[k].py, keys[k], batch[k].s, adjoints[k]);
+                        Sampler sampler(camera.sampler, req.seed, keys[k], uint64_t(batch[k].s));
+                        Vec2 pos = camera.sample_position(batch[k].px, batch[k].py, sampler);
+                        tape_sample(sampler, pos, adjoints[k]);
                     } else if (!sample_is_finite(radiance[k])) {
                         ++dropped;
                         record.tape[size_t(k)] = 1;  // (no deposits)
@@ -641,7 +638,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 RGB<T> dL = gather(px, py, pos);
                 if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
                 if (!lanes_ctx) {
-                    tape_sample(px, py, key, s, dL);
+                    tape_sample(sampler, pos, dL);
                     return;
                 }
                 batch[n_batch] = {px, py, PixelSeed(req.seed, key), s};

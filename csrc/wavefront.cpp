@@ -707,7 +707,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
                      WavefrontRecord *record) {
     const Scene &scene = ctx.scene;
-    // Recording: reads of differentiated parameters other than a diffuse reflectance's or an
+    // Recording: reads of differentiated parameters other than a linear input's or an
     // emission's send the path to the tape.
     ParamReadLog *log = record ? ctx.params.log : nullptr;
     if (record) record->tape.assign(size_t(n), 0), record->vertices.clear();
@@ -841,8 +841,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             // and, on the branch it samples, the dielectric's specular reflectance or
             // transmittance are one factor of all the path gathers after the vertex.)
             const bool glass = lane == WavefrontScene::Glass;
-            bool linear = lane == WavefrontScene::Diffuse || lane == WavefrontScene::Mirror ||
-                          lane == WavefrontScene::RoughMirror || glass;
+            const bool linear = linear_in_inputs(lane);
             auto keep = [&](int reads_before, const Color3f &value) {
                 // A differentiated input: the vertex, for render_bwd's deposit.
                 if (!log || !linear || log->count != reads_before + 1) return -1;

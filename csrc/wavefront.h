@@ -23,7 +23,7 @@
 // in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
 // every emitter is such a mesh and some BSDF is one of those; other scenes, and the autodiff
 // number types, take path_li. render_bwd also traces its paths with it, for gradients of
-// diffuse reflectances (WavefrontVertex).
+// the inputs of lanes linear in them and of emitters' radiance (WavefrontVertex).
 #pragma once
 
 #include <optional>
@@ -97,20 +97,30 @@ struct WavefrontSample {
     int s;
 };
 
+/// Whether a lane's value is one factor of its sample weight in each of its reflectance and
+/// transmittance inputs (the diffuse reflectance, the conductors' specular reflectance, the
+/// dielectric's on the branch it samples), so that render_bwd can differentiate them in
+/// lanes (WavefrontVertex). Not roughplastic: a sum of two lobes.
+inline bool linear_in_inputs(WavefrontScene::Lane lane) {
+    return lane == WavefrontScene::Diffuse || lane == WavefrontScene::Mirror ||
+           lane == WavefrontScene::Glass || lane == WavefrontScene::RoughMirror;
+}
+
 /// What the backward pass in lanes (render_bwd) keeps of the paths it traces. A diffuse
 /// reflectance rho enters a path's radiance linearly: every contribution gathered after its
 /// vertex (the emitter sample there and all later emission) is a product with one factor rho,
 /// the throughput's (a cosine-sampled diffuse weight is rho itself), the rest detached
 /// (directions, MIS weights, roulette). So dL/drho = (L - L_before) / rho per channel, with
 /// L_before the radiance gathered before the vertex, and a parameter read there receives
-/// dL . (L - L_before) / rho times its read's weights: no tape. Likewise an emitter's
+/// dL . (L - L_before) / rho times its read's weights: no tape. Likewise the other inputs of
+/// lanes linear in them (linear_in_inputs), rho standing for the input; and an emitter's
 /// radiance Le: each contribution C of its emission (found by a ray, or by an emitter
 /// sample) gives dL . C / Le.
 struct WavefrontVertex {
     int seq;            ///< the sample's index in the caller's arrays (-1: void)
-    int to_end;         ///< 1: a reflectance, `gathered` is L_before; 0: an emission, `gathered` is C
+    int to_end;         ///< 1: a BSDF input, `gathered` is L_before; 0: an emission, `gathered` is C
     float gathered[3];
-    float value[3];     ///< rho, or Le
+    float value[3];     ///< the input (rho), or Le
     ParamRead read;     ///< the differentiated parameter it came from
 };
 struct WavefrontRecord {
@@ -123,8 +133,8 @@ struct WavefrontRecord {
 /// Trace `n` <= WavefrontBatch samples: their film positions into pos[i] and radiance into
 /// L[i], as the scalar loop (Sampler, Camera::sample_position, sample_ray, path_li) would.
 /// With `record` (the backward pass in lanes; ctx.params.log watching the differentiated
-/// parameters), also the vertices of diffuse reflectances and the emission read from those
-/// parameters.
+/// parameters), also the vertices whose linear inputs (linear_in_inputs) and the emission
+/// that read those parameters.
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &cfg, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
