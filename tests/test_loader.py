@@ -500,7 +500,31 @@ def test35_nested_objects_with_an_id_can_be_referenced(tmp_path):
     assert [k for k in scene.params if k.endswith(".value")] == ["a.bsdf.reflectance.value"]
 
 
-def test36_textured_emission_is_a_clear_error():
+def test36_an_emitters_default_bsdf_is_black(tmp_path):
+    # Mitsuba 3 gives a shape without a BSDF a diffuse one of reflectance 0.5, or 0 where the
+    # shape carries an area emitter (nested or referenced): a light does not reflect.
+    path = _write(tmp_path, '''
+    <emitter type="area" id="l"><rgb name="radiance" value="10"/></emitter>
+    <shape type="rectangle" id="near"><emitter type="area"><rgb name="radiance" value="1"/></emitter></shape>
+    <shape type="rectangle" id="far"><ref id="l"/>
+        <transform name="to_world"><scale value="20"/><rotate y="1" angle="180"/><translate z="4"/></transform></shape>
+    <shape type="sphere" id="plain"><point name="center" x="0" y="0" z="-5"/></shape>
+    <sensor type="perspective"><float name="fov" value="20"/>
+        <transform name="to_world"><lookat origin="0, 0, 2" target="0, 0, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="6"/><integer name="height" value="6"/></film></sensor>''')
+    scene = tr.load_file(path)
+    p = scene.params
+    assert p["near.bsdf.reflectance.value"].tolist() == [0] and p["far.bsdf.reflectance.value"].tolist() == [0]
+    assert p["plain.bsdf.reflectance.value"].tolist() == [0.5]
+    # The camera sees only `near`, lit by `far` (radiance 10) behind the camera: its own
+    # radiance, nothing reflected (a reflectance of 0.5 would add about 2.5).
+    image = tr.render(scene, spp=4)
+    torch.testing.assert_close(image, torch.ones_like(image))
+    assert tr.load_dict({"type": "scene", "s": {"type": "sphere", "emitter": {"type": "area"}}}
+                        ).params["s.bsdf.reflectance.value"].tolist() == [0]
+
+
+def test37_textured_emission_is_a_clear_error():
     for emitter, name in (({"type": "point"}, "intensity"), ({"type": "constant"}, "radiance")):
         scene = {"type": "scene", "e": {**emitter, name: {"type": "checkerboard"}}}
         with pytest.raises(tr.SceneError, match=rf"<dict>: {emitter['type']}: .*textured .* not supported"):
@@ -517,7 +541,7 @@ def test36_textured_emission_is_a_clear_error():
     ('<emitter type="area"><spectrum type="blackbody" name="radiance"/></emitter>',
      r'<spectrum type="blackbody">: spectrum plugins are not supported'),
 ])
-def test37_capabilities_we_lack_are_named(tmp_path, body, message):
+def test38_capabilities_we_lack_are_named(tmp_path, body, message):
     # Media, polarisation, curves, SDF grids, hair and spectral rendering are refused with a
     # SceneError that says which capability is missing, at the file and line.
     with pytest.raises(tr.SceneError, match=r"scene\.xml:2: " + message):

@@ -52,7 +52,7 @@ def room_dict(tmp_path, integrator=None, **extra):
                  "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": 0.6}}},
         "side": {"type": "rectangle", "to_world": tr.Transform.translate([-1.2, 1, 0]).rotate([0, 1, 0], 90).scale(2),
                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.7, 0.3]}}},
-        "quad": {"type": "obj", "filename": str(tmp_path / "quad.obj"),
+        "quad": {"type": "obj", "filename": str(tmp_path / "quad.obj"), "bsdf": {"type": "diffuse"},
                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [6.0, 5.0, 4.0]}}},
         "strip": {"type": "obj", "filename": str(tmp_path / "strip.obj"), "flip_normals": True,
                   "emitter": {"type": "area", "radiance": 2.0}},

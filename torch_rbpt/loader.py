@@ -584,8 +584,11 @@ class _Builder:
         if bsdfs:
             name, child, referenced = bsdfs[0]
             bsdf = self.bsdf(child, f"{key}.bsdf")
-        else:  # Mitsuba's default: a diffuse BSDF of reflectance 0.5
-            default = self.default_bsdfs.setdefault(id(node), {"type": "diffuse", "__where__": _where(node)})
+        else:  # Mitsuba's default: a diffuse BSDF, of reflectance 0.5, or 0 (black) on an emitter
+            default = {"type": "diffuse", "__where__": _where(node)}
+            if self.nested(node, "emitter"):
+                default["reflectance"] = 0.0
+            default = self.default_bsdfs.setdefault(id(node), default)
             bsdf = self.bsdf(default, f"{key}.bsdf")
         flip = self.number(node, "flip_normals", False, bool)
         to_world = self.matrix(node)
