@@ -55,11 +55,11 @@ RBPT_INLINE Vec3 square_to_cosine_hemisphere(Vec2 u) {
 inline float square_to_cosine_hemisphere_pdf(const Vec3 &v) { return InvPi * std::max(v.z, 0.f); }
 
 /// Uniform direction on the unit sphere; pdf = 1 / (4 pi).
-inline Vec3 square_to_uniform_sphere(Vec2 u) {
+RBPT_INLINE Vec3 square_to_uniform_sphere(Vec2 u) {
     float z = 1.f - 2.f * u.y;
     float r = safe_sqrt(1.f - z * z);
-    float phi = 2.f * Pi * u.x;
-    return {r * std::cos(phi), r * std::sin(phi), z};
+    Vec2 cs = cossin_2pi(u.x);  // (vectorises: the wavefront's environment samples)
+    return {r * cs.x, r * cs.y, z};
 }
 
 /// Uniform direction in the cone around +z with cos(half-angle) = cos_max.

@@ -18,7 +18,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     const Scene &scene = ctx.scene;
     if (cfg.type != IntegratorType::Path || cfg.max_depth == 0) return std::nullopt;
     if (camera.sampler.type != SamplerType::Independent) return std::nullopt;
-    if (scene.environment >= 0 || scene.emitters.empty()) return std::nullopt;
+    // (The interaction stage gathers from the triangles, clamping indices to the last one.)
+    if (scene.emitters.empty() || scene.geometry.triangles.empty()) return std::nullopt;
     WavefrontScene ws;
     bool any_lanes = false;
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
@@ -75,6 +76,19 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.sphere_sign.push_back(1.f);
     }
     for (const Emitter &e : scene.emitters) {
+        if (e.type == EmitterType::Constant) {
+            // The environment: no mesh (its entries in the flat arrays are a unit triangle,
+            // which the vector stage gathers from and ignores).
+            ws.environment = true;
+            ws.lights.push_back({ctx.params.spectrum(e.radiance), e.radiance, 0, 0, 1.f, 1.f});
+            for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
+            for (int t = 0; t < 8; ++t) {
+                ws.vertices.insert(ws.vertices.end(), {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}});
+                ws.normals.insert(ws.normals.end(), 3, Vec3());
+                ws.face_normals.push_back(Vec3{0.f, 0.f, 1.f});
+            }
+            continue;
+        }
         if (e.type != EmitterType::Area) return std::nullopt;
         const Shape &shape = scene.geometry.shapes[e.shape];
         if (shape.kind != ShapeKind::Mesh || shape.tri_count == 0 || shape.tri_count > 8) return std::nullopt;
@@ -85,6 +99,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         light.has_normals = shape.has_normals;
         light.flip_normals = shape.flip_normals;
         light.area = shape.area;
+        light.environment = 0.f;
         for (uint32_t i = 0; i < 9; ++i) ws.cdf.push_back(i <= shape.tri_count ? shape.tri_cdf[i] : 2.f);
         for (uint32_t t = 0; t < 8; ++t) {
             const Triangle &tri = g.triangles[shape.tri_begin + std::min(t, shape.tri_count - 1)];
@@ -289,9 +304,10 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
-/// dielectrics (which sample no emitter), whether some are rough; the code of the BSDFs a
-/// scene does not have is left out.
-template <bool OneLight, bool Delta, bool Rough>
+/// dielectrics (which sample no emitter), whether some are rough; Env: whether one emitter is
+/// the `constant` environment. The code of the BSDFs and emitters a scene does not have is
+/// left out.
+template <bool OneLight, bool Delta, bool Rough, bool Env>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -329,6 +345,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
         const WavefrontScene::Light &light = lights[index];
+        // (The environment's direction: uniform on the sphere, from u as selection left it.)
+        const Vec3 env_d = Env ? warp::square_to_uniform_sphere(u) : Vec3();
         const int c = 9 * index;  // the light's CDF in light_cdf
         uint32_t local = 0;
         for (int i = 1; i < 8; ++i) local += cdfs[c + i] <= u.x;
@@ -354,6 +372,13 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         sampled = abs_cos > 0.f ? sampled : 0.f;
         sampled = area_pdf > 0.f ? sampled : 0.f;
         sampled = dot(d, ln) < 0.f ? sampled : 0.f;
+        if constexpr (Env) {
+            // The environment (emitter_sample's `constant`): a direction, always a sample.
+            const float env = light.environment;
+            d = select(env != 0.f, env_d, d);
+            pdf = env != 0.f ? InvFourPi : pdf;
+            sampled = env != 0.f ? smooth : sampled;
+        }
         float es_pdf = pdf / float(n_lights);
         float inv_pdf = 1.f / es_pdf;
         Color3f ew{light.radiance.v[0] * inv_pdf, light.radiance.v[1] * inv_pdf, light.radiance.v[2] * inv_pdf};
@@ -388,16 +413,21 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.cr[k] = b.br[k] * f.v[0] * ew.v[0] * w;
         b.cg[k] = b.bg[k] * f.v[1] * ew.v[1] * w;
         b.cb[k] = b.bb[k] * f.v[2] * ew.v[2] * w;
-        // Its shadow ray (SurfaceInteraction::spawn_ray_to).
-        Vec3 so = offset_p(b, k, lp - p);
+        // Its shadow ray (SurfaceInteraction::spawn_ray_to; the environment's: spawn_ray).
+        Vec3 so = offset_p(b, k, Env ? select(light.environment != 0.f, d, lp - p) : lp - p);
         Vec3 sd = lp - so;
         float sdist = norm(sd);
         sd = sd / sdist;
+        float stmax = sdist * (1.f - ShadowEpsilon);
+        if constexpr (Env) {
+            sd = select(light.environment != 0.f, d, sd);
+            stmax = light.environment != 0.f ? Infinity : stmax;
+        }
         b.shadow[k] = sampled != 0.f;
         b.light[k] = index;
         b.sox[k] = so.x, b.soy[k] = so.y, b.soz[k] = so.z;
         b.sdx[k] = sd.x, b.sdy[k] = sd.y, b.sdz[k] = sd.z;
-        b.stmax[k] = sdist * (1.f - ShadowEpsilon);
+        b.stmax[k] = stmax;
 
         // Sample the BSDF for the next ray (bsdf_sample, in the flipped frame).
         float u1 = next_1d(b, k, true);
@@ -484,9 +514,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
-    return with_flags([](auto one_light, auto delta, auto rough) -> VertexStage {
-        return vertex_stage<decltype(one_light)::value, decltype(delta)::value, decltype(rough)::value>;
-    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough);
+    return with_flags([](auto one_light, auto delta, auto rough, auto env) -> VertexStage {
+        return vertex_stage<decltype(one_light)::value, decltype(delta)::value, decltype(rough)::value,
+                            decltype(env)::value>;
+    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
@@ -787,8 +818,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         int n_side = 0;
         for (int k = 0; k < n; ++k) {
             b.shade[k] = 0, b.mat[k] = 0;
-            if (b.prim[k] == ~0u) continue;  // escaped (the wavefront's scenes have no environment)
             const int reads = log ? log->count : 0;
+            if (b.prim[k] == ~0u) {
+                // The ray escaped: the environment's emission (if the scene has one) ends it.
+                if (scene.environment >= 0 && !(cfg.hide_emitters && depth == 0)) {
+                    const Emitter &e = scene.emitters[size_t(scene.environment)];
+                    RGB<float> Le = emission_found(ctx, e, SurfaceInteraction(), RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                                                   b.prev_delta[k] != 0, b.prev_pdf[k],
+                                                   Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
+                    b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+                    unexpected_reads(k, reads, emission_read(k, reads, e, Le));
+                }
+                continue;
+            }
             int expected = 0;
             SurfaceInteraction si;
             if (!b.done[k]) {

@@ -21,7 +21,8 @@
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
-// every emitter is such a mesh and some BSDF is one of those; other scenes, and the autodiff
+// every emitter is such a mesh or the `constant` environment and some BSDF is one of those;
+// other scenes, and the autodiff
 // number types, take path_li. render_bwd also traces its paths with it, for gradients of
 // the inputs of lanes linear in them and of emitters' radiance (WavefrontVertex).
 #pragma once
@@ -59,6 +60,7 @@ struct WavefrontScene {
         int radiance_param;  ///< Emitter::radiance
         int has_normals, flip_normals;  // (ints, not bools: the vector loop gathers them)
         float area;
+        float environment;   ///< 1: the `constant` environment (no mesh), 0: an area light
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
@@ -76,6 +78,7 @@ struct WavefrontScene {
     std::vector<float> sphere_radius, sphere_sign;
     bool any_spheres = false;
     std::vector<Light> lights;        ///< per Scene::emitters
+    bool environment = false;         ///< whether one is the `constant` environment
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t.
     std::vector<float> cdf;      ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)

@@ -310,7 +310,7 @@ def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkey
     assert torch.equal(wavefront, scalar)
 
 
-@pytest.mark.parametrize("change", ["only rough BSDFs", "cube light", "environment", "stratified",
+@pytest.mark.parametrize("change", ["only rough BSDFs", "cube light", "no triangles", "stratified",
                                     "direct", "float64"])
 def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
     d = room_dict(tmp_path)
@@ -321,6 +321,10 @@ def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change
         d["box"] = {"type": "cube", "to_world": tr.Transform.scale(0.1),
                     "emitter": {"type": "area", "radiance": 1.0}}
     elif change == "environment":
+        d["sky"] = {"type": "constant"}
+    elif change == "no triangles":  # spheres under the sky
+        d = {k: v for k, v in d.items() if not isinstance(v, dict) or v.get("type") not in ("rectangle", "obj")}
+        d["ball"] = {"type": "sphere", "bsdf": {"type": "diffuse"}}
         d["sky"] = {"type": "constant"}
     elif change == "stratified":
         d["sensor"]["sampler"] = {"type": "stratified"}
@@ -374,3 +378,30 @@ def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
         scale = float(tape_grads[k].abs().max())
         assert scale > 0, k
         torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+
+
+@pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}, {"max_depth": 2}, {"rr_depth": 1}])
+@pytest.mark.parametrize("lights", ["area lights", "environment only"])
+def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, lights):
+    # The `constant` environment: its emitter samples (a uniform direction, a shadow ray to
+    # infinity) in the vector stage, the emission of rays that escape in the shade stage, the
+    # image bitwise path_li's; its radiance differentiated in lanes, with a reflectance, the
+    # tape's gradients.
+    d = room_dict(tmp_path, integrator)
+    d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}}
+    if lights == "environment only":
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    keys = ["sky.radiance.value", "floor.bsdf.reflectance.value"]
+    lanes_grads, lanes, taped = backward(scene, keys)
+    assert lanes == 21 * 13 * 8 and taped == 0
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, keys)
+    for k in keys:
+        scale = float(tape_grads[k].abs().max())
+        assert scale > 0, k
+        torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
