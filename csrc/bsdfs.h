@@ -15,6 +15,7 @@
 #include <optional>
 #include <type_traits>
 
+#include "dual.h"
 #include "math.h"
 #include "microfacet.h"
 #include "shapes.h"
@@ -262,6 +263,18 @@ struct RoughConductorBSDF {
         // no derivative, so the weight's derivative must be d(eval)/d(theta) / pdf.
         bs.weight = e.value / real_t<S>(bs.pdf);
         return bs;
+    }
+    /// d log(value) / d alpha at (wi, wo): alpha enters the value as one factor common to all
+    /// channels, D(h) G1(wi, h) G1(wo, h), differentiated here with a dual number through
+    /// the code the tape differentiates (render_bwd's roughness derivatives in lanes). Zero
+    /// where the value is.
+    static float dlog_dalpha(MicrofacetType type, float alpha, const Vec3 &wi, const Vec3 &wo) {
+        if (!(wi.z > 0.f && wo.z > 0.f)) return 0.f;
+        const Dual<float> a(RGB<float>(alpha), RGB<float>(1.f));
+        const Vec3 h = normalize(wi + wo);
+        Dual<float> f = microfacet_D(type, a, h) * smith_G1(type, a, wi, h) * smith_G1(type, a, wo, h);
+        float value = f.v[0];
+        return value != 0.f ? f.d[0] / value : 0.f;
     }
 };
 

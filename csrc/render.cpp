@@ -509,15 +509,14 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     int n_tiles = tiles.nx * tiles.ny;
     std::vector<std::vector<double>> buffers(n_workers);
     // The backward pass in lanes (WavefrontVertex) for float renders in the wavefront's scenes
-    // when no differentiated parameter is a roughness (which the wavefront reads once, when it
-    // flattens the scene, and which enters nonlinearly) or an input of a BSDF whose lane is
+    // when no differentiated parameter is a roughness other than a GGX conductor's (the lane
+    // whose roughness derivative WavefrontVertex takes) or an input of a BSDF whose lane is
     // not linear in its inputs.
     std::optional<WavefrontScene> wavefront;
     std::vector<char> watched(n_params, 0);
     if constexpr (std::is_same_v<T, float>) {
         bool lanes = true;
         for (size_t p = 0; p < n_params; ++p) watched[p] = grads[p] != nullptr;
-        for (const BSDF &b : scene.bsdfs) lanes = lanes && (b.alpha < 0 || !watched[size_t(b.alpha)]);
         // A radiance with a zero channel: the wavefront's emitter samples skip that emitter
         // (its sample weight is null), where the tape still traces their shadow rays for the
         // derivative.
@@ -531,7 +530,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // path that reaches them.)
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
             const BSDF &b = scene.bsdfs[i];
-            if (linear_in_inputs(WavefrontScene::Lane(wavefront->materials[i].lane))) continue;
+            const auto lane = WavefrontScene::Lane(wavefront->materials[i].lane);
+            if (b.alpha >= 0 && watched[size_t(b.alpha)] && lane != WavefrontScene::RoughMirror) {
+                wavefront.reset();
+                break;
+            }
+            if (linear_in_inputs(lane)) continue;
             for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
                 if (reads_watched(scene, *r, watched)) wavefront.reset();
         }
@@ -589,7 +593,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
                 for (const WavefrontVertex &v : record.vertices)
                     for (int c = 0; c < 3; ++c)
-                        if (v.seq >= 0 && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                        if (v.seq >= 0 && v.to_end != 2 && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
@@ -607,6 +611,11 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];
                     for (int c = 0; c < 3; ++c) {
+                        if (v.to_end == 2) {  // a roughness: the emitter sample's C_e, then the rest
+                            double C = double(v.value[c]), rest = double(L[c]) - double(v.gathered[c]) - C;
+                            g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
+                            continue;
+                        }
                         double C = v.to_end ? double(L[c]) - double(v.gathered[c]) : double(v.gathered[c]);
                         g[c] = double(dL[c]) * C / double(v.value[c]);
                     }

@@ -9,8 +9,8 @@
 //               carrying the adjoint its splat gathers from the pixels it reaches (the
 //               transpose of the splat), and accumulate parameter gradients: in lanes where
 //               every differentiated parameter is a reflectance or transmittance the path is
-//               linear in, or an emitter's radiance (wavefront.h's WavefrontVertex), else with
-//               the tape type Var<T>;
+//               linear in, an emitter's radiance or a GGX conductor's roughness (wavefront.h's
+//               WavefrontVertex), else with the tape type Var<T>;
 //   render_jvp: the image and its directional derivative, with the dual type Dual<T>.
 #pragma once
 

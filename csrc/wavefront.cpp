@@ -149,6 +149,10 @@ struct Batch {
     int light[B];  ///< the emitter sampled
     float refracts[B];  ///< 1 where the BSDF sample refracted (a dielectric's transmission), else 0
     int record_reflect[B], record_refract[B];  ///< a dielectric's WavefrontVertex entries, or -1
+    int record_rough[B];  ///< a differentiated roughness's WavefrontVertex entry, or -1
+    // The rough BSDFs' directions, in the frame the vertex stage evaluates them in (twosided's
+    // flip applied): towards the emitter sample, and the BSDF sample.
+    float nwx[B], nwy[B], nwz[B], swx[B], swy[B], swz[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
 };
@@ -474,6 +478,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             wb = rough != 0.f ? e.b / e.pdf : wb;
         }
         float alive = bpdf > 0.f ? shade : 0.f;
+        if constexpr (Rough) {  // (for render_bwd's roughness derivatives)
+            b.nwx[k] = wo.x, b.nwy[k] = wo.y, b.nwz[k] = wo.z;
+            b.swx[k] = bwo.x, b.swy[k] = bwo.y, b.swz[k] = bwo.z;
+        }
         bwo.z = bwo.z * side;
         float br = b.br[k] * wr, bg = b.bg[k] * wg, bb = b.bb[k] * wb;
         float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
@@ -817,7 +825,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // here, and vertices of other BSDFs are shaded with path_li's own code.
         int n_side = 0;
         for (int k = 0; k < n; ++k) {
-            b.shade[k] = 0, b.mat[k] = 0;
+            b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {
                 // The ray escaped: the environment's emission (if the scene has one) ends it.
@@ -912,6 +920,27 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 int unused = b.refracts[k] != 0.f ? b.record_reflect[k] : b.record_refract[k];
                 if (unused >= 0) record->vertices[size_t(unused)].seq = -1;
             }
+            // A GGX conductor's differentiated roughness: the vertex, with d log f / d alpha
+            // towards its emitter sample and its BSDF sample (the shadow stage adds the emitter
+            // sample's contribution to it).
+            for (int k = 0; ws.any_rough && k < n; ++k) {
+                if (!b.shade[k]) continue;
+                const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
+                const BSDF &bsdf = scene.bsdfs[size_t(b.mat[k])];
+                if (m.lane != WavefrontScene::RoughMirror || !log->watched[bsdf.alpha]) continue;
+                Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
+                wi.z = m.twosided != 0 && wi.z < 0.f ? wi.z * -1.f : wi.z;  // (the vertex stage's flip)
+                ParamRead read;
+                read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
+                WavefrontVertex v{b.seq[k], 2, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
+                v.dlog[0] = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
+                                                                         Vec3{b.nwx[k], b.nwy[k], b.nwz[k]}) : 0.f;
+                v.dlog[1] = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
+                                                                        Vec3{b.swx[k], b.swy[k], b.swz[k]}) : 0.f;
+                if (!std::isfinite(v.dlog[0]) || !std::isfinite(v.dlog[1])) record->tape[size_t(b.seq[k])] = 1;
+                b.record_rough[k] = int(record->vertices.size());
+                record->vertices.push_back(v);
+            }
         }
         for (int i = 0; i < n_side; ++i) {
             const int k = side_lane[i];
@@ -930,6 +959,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 if (!scene.occluded(ray)) {
                     b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
                     const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
+                    if (log && b.record_rough[k] >= 0) {
+                        float *C = record->vertices[size_t(b.record_rough[k])].value;
+                        C[0] = b.cr[k], C[1] = b.cg[k], C[2] = b.cb[k];
+                    }
                     if (log && log->watched[light.radiance_param]) {
                         // The emitter sample's contribution, for render_bwd's deposit.
                         ParamRead read;

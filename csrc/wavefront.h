@@ -24,7 +24,8 @@
 // every emitter is such a mesh or the `constant` environment and some BSDF is one of those;
 // other scenes, and the autodiff
 // number types, take path_li. render_bwd also traces its paths with it, for gradients of
-// the inputs of lanes linear in them and of emitters' radiance (WavefrontVertex).
+// the inputs of lanes linear in them, of emitters' radiance and of GGX conductors' roughness
+// (WavefrontVertex).
 #pragma once
 
 #include <optional>
@@ -119,12 +120,21 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// lanes linear in them (linear_in_inputs), rho standing for the input; and an emitter's
 /// radiance Le: each contribution C of its emission (found by a ray, or by an emitter
 /// sample) gives dL . C / Le.
+///
+/// A GGX conductor's roughness alpha enters its vertex's emitter sample through f(wo_e) and
+/// everything after through the BSDF sample's weight f(wo_s) / pdf (the pdf detached), both
+/// as one factor common to the channels: with C_e the emitter sample's contribution,
+/// dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s), dlog = d log f / d alpha
+/// (RoughConductorBSDF::dlog_dalpha).
 struct WavefrontVertex {
     int seq;            ///< the sample's index in the caller's arrays (-1: void)
-    int to_end;         ///< 1: a BSDF input, `gathered` is L_before; 0: an emission, `gathered` is C
+    /// 1: a BSDF input, `gathered` is L_before; 0: an emission, `gathered` is C; 2: a
+    /// roughness, `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s
+    int to_end;
     float gathered[3];
     float value[3];     ///< the input (rho), or Le
     ParamRead read;     ///< the differentiated parameter it came from
+    float dlog[2] = {0.f, 0.f};
 };
 struct WavefrontRecord {
     std::vector<WavefrontVertex> vertices;

@@ -166,10 +166,12 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("key", ["beckmann.bsdf.specular_reflectance.value", "panel.emitter.radiance.value",
-                                 "metal.bsdf.alpha.value", "shiny.bsdf.diffuse_reflectance.value"])
+                                 "beckmann.bsdf.alpha.value", "shiny.bsdf.alpha",
+                                 "shiny.bsdf.diffuse_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
-    # Roughness and the inputs of BSDFs other than diffuse ones, mirrors and GGX conductors
-    # (even roughplastic's diffuse reflectance, and a Beckmann conductor's, shaded aside)
+    # Roughness other than a GGX conductor's (a Beckmann conductor's, shaded aside, and
+    # roughplastic's) and the inputs of BSDFs other than diffuse ones, mirrors and GGX conductors
+    # (even roughplastic's diffuse reflectance, and a Beckmann conductor's)
     # enter the path otherwise than as one factor of its throughput; a radiance with a zero channel
     # is skipped by the wavefront's emitter samples: the whole backward pass takes the tape,
     # whatever else is differentiated.
@@ -405,3 +407,39 @@ def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, ligh
         scale = float(tape_grads[k].abs().max())
         assert scale > 0, k
         torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+
+
+@pytest.mark.parametrize("lights", ["area lights", "environment only"])
+def test13_backward_in_lanes_for_ggx_roughness(tmp_path, monkeypatch, lights):
+    # A GGX conductor's roughness enters its vertex's emitter sample and BSDF sample weight as
+    # one factor common to the channels, f(wo) (the pdf detached): each vertex deposits
+    # C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s). Lanes, with the tape's gradients:
+    # a sphere, a twosided panel seen from both sides, a very smooth one; with their specular
+    # reflectances, a diffuse reflectance and the lights' radiance.
+    extra = dict(
+        metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
+               "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
+                        "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}},
+        panel_metal={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.5, -0.3]).rotate([0, 1, 0], -60).scale(0.35),
+                     "bsdf": {"type": "twosided", "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.12}}},
+        smooth={"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.1, 0.15, 0.5]),
+                "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.02}})
+    d = room_dict(tmp_path, {"max_depth": 6}, **extra)
+    radiance = "quad.emitter.radiance.value"
+    if lights == "environment only":
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+        d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.6, 0.8]}}
+        radiance = "sky.radiance.value"
+    scene = tr.load_dict(d)
+    keys = ["metal.bsdf.alpha.value", "panel_metal.bsdf.brdf_0.alpha.value", "smooth.bsdf.alpha.value",
+            "metal.bsdf.specular_reflectance.value", "floor.bsdf.reflectance.value", radiance]
+    assert all(k in scene._keys for k in keys), scene._keys
+    grads, lanes, taped = backward(scene, keys, spp=16)
+    assert lanes == 21 * 13 * 16 and taped == 0
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, keys, spp=16)
+    for k in keys:
+        scale = float(tape_grads[k].abs().max())
+        assert scale > 0, k
+        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
