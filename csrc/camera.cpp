@@ -12,20 +12,18 @@ float Filter::eval(float x) const {
 }
 
 void Filter::prepare() {
+    inv_radius_ = 1.f / radius;
     gaussian_.alpha = -1.f / (2.f * stddev * stddev);
     gaussian_.bias = std::exp(gaussian_.alpha * radius * radius);
     for (int j = 0; j < 2 * MaxBorder + 1; ++j)
         gaussian_.square_exp[j] = std::exp(gaussian_.alpha * float(j * j));
 }
 
-void Filter::eval_row(float x0, int n, float *w) const {
+void Filter::eval_row_other(float x0, int n, float *w) const {
     switch (type) {
         case FilterType::Box:
-            for (int k = 0; k < n; ++k) w[k] = std::abs(x0 + float(k)) <= radius ? 1.f : 0.f;
-            return;
         case FilterType::Tent:
-            for (int k = 0; k < n; ++k) w[k] = std::max(0.f, 1.f - std::abs(x0 + float(k)) / radius);
-            return;
+            return eval_row(x0, n, w);  // (inline in camera.h)
         case FilterType::Gaussian: {
             const float alpha = gaussian_.alpha;
             if (n == 1) {

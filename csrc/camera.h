@@ -29,8 +29,17 @@ struct Filter {
     /// Mitsuba's 1D filter profile (box: 1; tent: 1 - |x|/r; gaussian: exp(-x^2/2s^2) - bias;
     /// mitchell: the cubic of Mitchell and Netravali 1988 in |x| < 2; lanczos: windowed sinc).
     float eval(float x) const;
-    /// eval() at the n offsets x0, x0 + 1, ..., x0 + n - 1 (a row of splat weights).
-    void eval_row(float x0, int n, float *w) const;
+    /// eval() at the n offsets x0, x0 + 1, ..., x0 + n - 1 (a row of splat weights). The box
+    /// and the tent inline (each sample's splat and gather take two rows), the others not.
+    void eval_row(float x0, int n, float *w) const {
+        if (type == FilterType::Tent) {
+            for (int k = 0; k < n; ++k) w[k] = std::max(0.f, 1.f - std::abs((x0 + float(k)) * inv_radius_));
+        } else if (type == FilterType::Box) {
+            for (int k = 0; k < n; ++k) w[k] = std::abs(x0 + float(k)) <= radius ? 1.f : 0.f;
+        } else {
+            eval_row_other(x0, n, w);
+        }
+    }
     /// The largest border() the film handles (radius 16.5 pixels).
     static constexpr int MaxBorder = 16;
     /// How many pixels a sample's splat reaches on each side of the pixel it lies in.
@@ -39,6 +48,9 @@ struct Filter {
     }
 
 private:
+    void eval_row_other(float x0, int n, float *w) const;
+    /// 1 / radius (the tent's weight is 1 - |x| / radius, as Mitsuba's, with a product).
+    float inv_radius_ = std::numeric_limits<float>::quiet_NaN();
     /// The gaussian's exponent factor -1 / (2 stddev^2), its value at the radius (subtracted
     /// so that the profile reaches zero there) and exp(alpha j^2) for the whole-pixel steps j
     /// of a row. NaN until prepare().

@@ -637,12 +637,23 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // of a tile: worker w always sums the same paths in the same order, so gradients are
         // bitwise reproducible for a given number of workers, and each tile's paths are
         // shared among the workers (whose loads stay even when some tiles cost more).
+        // (The pixels' seeds are kept per tile: a worker's units run through a tile's samples.)
         int64_t n_units = int64_t(n_tiles) * req.spp;
+        std::vector<PixelSeed> tile_seeds;
+        int seeds_of = -1;
         for (int64_t unit = w; unit < n_units; unit += n_workers) {
             int tile = int(unit / req.spp), s = int(unit % req.spp);
+            if (tile != seeds_of) {
+                tile_seeds.clear();
+                for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
+                                       [&](int, int, uint64_t key) { tile_seeds.emplace_back(req.seed, key); });
+                seeds_of = tile;
+            }
+            size_t pixel = 0;
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t key) {
-                Sampler sampler(camera.sampler, req.seed, key, uint64_t(s));
+                const PixelSeed &seed = tile_seeds[pixel++];
+                Sampler sampler(camera.sampler, seed, uint64_t(s));
                 Vec2 pos = camera.sample_position(px, py, sampler);
                 RGB<T> dL = gather(px, py, pos);
                 if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
@@ -650,7 +661,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     tape_sample(sampler, pos, dL);
                     return;
                 }
-                batch[n_batch] = {px, py, PixelSeed(req.seed, key), s};
+                batch[n_batch] = {px, py, seed, s};
                 keys[n_batch] = key;
                 adjoints[n_batch++] = dL;
                 if (n_batch == WavefrontBatch) flush();
