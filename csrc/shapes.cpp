@@ -204,7 +204,8 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
             q[2] = 0.0;
             ds.n = shape.normal;
         } else {
-            float phi = 2.f * Pi * u.y, c = std::cos(phi), s = std::sin(phi);
+            Vec2 cs = warp::cossin_2pi(u.y);  // (cos, sin) of phi = 2 pi u.y
+            float c = cs.x, s = cs.y;
             q[0] = double(c) * shape.radius;
             q[1] = double(s) * shape.radius;
             q[2] = double(u.x) * shape.length;
@@ -229,8 +230,8 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
             float cos_alpha = sin2 * inv_sin_max +
                               cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
             float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
-            float phi = 2.f * Pi * u.y;
-            Vec3 local{std::cos(phi) * sin_alpha, std::sin(phi) * sin_alpha, cos_alpha};
+            Vec2 cs = warp::cossin_2pi(u.y);  // (cos, sin) of phi = 2 pi u.y, without libm
+            Vec3 local{cs.x * sin_alpha, cs.y * sin_alpha, cos_alpha};
             Vec3 d = Frame(dc * -inv_dc).to_world(local);
             ds.p = shape.center + d * shape.radius;
             ds.n = d;
