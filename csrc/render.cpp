@@ -298,7 +298,8 @@ private:
 
     /// The filter weights of a sample and the window of pixels they cover, offsets
     /// [i0, i1] x [j0, j1] from the sample's pixel (x, y in the crop window), clipped to the
-    /// film's columns and rows.
+    /// film's columns and rows and to the weights that are not zero at its edges (a tent of
+    /// radius 1 reaches 2 x 2 of its 3 x 3 pixels; what it skips would add zeros).
     struct Footprint {
         float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
         int b, x, y, i0, i1, j0, j1;
@@ -313,6 +314,10 @@ private:
         fp.i1 = std::min(fp.b, camera_.crop_width - 1 - fp.x);
         fp.j0 = std::max(-fp.b, rows_.begin - fp.y);
         fp.j1 = std::min(fp.b, rows_.end - 1 - fp.y);
+        while (fp.i0 <= fp.i1 && fp.wx[fp.i0 + fp.b] == 0.f) ++fp.i0;
+        while (fp.i1 >= fp.i0 && fp.wx[fp.i1 + fp.b] == 0.f) --fp.i1;
+        while (fp.j0 <= fp.j1 && fp.wy[fp.j0 + fp.b] == 0.f) ++fp.j0;
+        while (fp.j1 >= fp.j0 && fp.wy[fp.j1 + fp.b] == 0.f) --fp.j1;
         return fp;
     }
 
