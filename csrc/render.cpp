@@ -167,15 +167,13 @@ public:
 
     /// Splat a sample taken in pixel (px, py) of tile (tx, ty) at `pos` (film coordinates) into
     /// that tile's block; with L null, only its weights (for the backward pass's
-    /// normalisation). The sums are those of for_each_reached: the pixels it skips get zero
-    /// weights here, which add nothing.
+    /// normalisation). It reaches the pixels for_each_reached reaches.
     template <typename S>
     void splat(Block &block, int px, int py, Vec2 pos, const S *L) const {
         Footprint fp = footprint(px, py, pos);
         double l[4] = {0.0, 0.0, 0.0, 1.0};
         if (L) value_of(*L, l);
         for (int j = fp.j0; j <= fp.j1; ++j) {
-            if (fp.wy[j + fp.b] == 0.f) continue;
             size_t row = block.index(fp.x, fp.y + j);
             PixelSum *sum = &block.sums[row];
             double wyj = fp.wy[j + fp.b];
@@ -223,15 +221,14 @@ public:
     bool complete() const { return next_border_ == tiles_.index(0, ty_end_); }
 
     /// Call f(i, w) for each pixel i (row-major over the film's rows) that a sample taken in
-    /// pixel (px, py) at film position `pos` reaches with a nonzero filter weight w.
+    /// pixel (px, py) at film position `pos` reaches, with its filter weight w (the
+    /// footprint's edges have nonzero weights; a weight inside it may be zero).
     template <typename F>
     void for_each_reached(int px, int py, Vec2 pos, F f) const {
         Footprint fp = footprint(px, py, pos);
         for (int j = fp.j0; j <= fp.j1; ++j) {
-            if (fp.wy[j + fp.b] == 0.f) continue;
             size_t row = image_.index(fp.x, fp.y + j);
             for (int i = fp.i0; i <= fp.i1; ++i) {
-                if (fp.wx[i + fp.b] == 0.f) continue;
                 f(row + i, double(fp.wx[i + fp.b]) * double(fp.wy[j + fp.b]));
             }
         }
@@ -314,10 +311,13 @@ private:
         fp.i1 = std::min(fp.b, camera_.crop_width - 1 - fp.x);
         fp.j0 = std::max(-fp.b, rows_.begin - fp.y);
         fp.j1 = std::min(fp.b, rows_.end - 1 - fp.y);
-        while (fp.i0 <= fp.i1 && fp.wx[fp.i0 + fp.b] == 0.f) ++fp.i0;
-        while (fp.i1 >= fp.i0 && fp.wx[fp.i1 + fp.b] == 0.f) --fp.i1;
-        while (fp.j0 <= fp.j1 && fp.wy[fp.j0 + fp.b] == 0.f) ++fp.j0;
-        while (fp.j1 >= fp.j0 && fp.wy[fp.j1 + fp.b] == 0.f) --fp.j1;
+        // (Branch-free: which edge is zero is a coin flip per sample.)
+        for (int t = 0; t < fp.b; ++t) {
+            fp.i0 += int((fp.i0 < fp.i1) & (fp.wx[fp.i0 + fp.b] == 0.f));
+            fp.i1 -= int((fp.i1 > fp.i0) & (fp.wx[fp.i1 + fp.b] == 0.f));
+            fp.j0 += int((fp.j0 < fp.j1) & (fp.wy[fp.j0 + fp.b] == 0.f));
+            fp.j1 -= int((fp.j1 > fp.j0) & (fp.wy[fp.j1 + fp.b] == 0.f));
+        }
         return fp;
     }
 
@@ -480,11 +480,22 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     RowRange all{0, camera.crop_height};
     Tiles tiles = tiles_of(camera);
     Film weights(camera, tiles, all);
+    const bool independent = camera.sampler.type == SamplerType::Independent;
+    constexpr int Chunk = 256;  // (the independent sampler's positions, a chunk at a time)
     for_each_tile(tiles, all, pool, [&](int tx, int ty) {
         Film::Block block = weights.block(tx, ty);
+        uint64_t stream[Chunk], index[Chunk];
+        float u0[Chunk], u1[Chunk];
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
             PixelSeed seed(req.seed, key);
-            for (int s = 0; s < req.spp; ++s) {
+            for (int s0 = 0; independent && s0 < req.spp; s0 += Chunk) {
+                int n = std::min(Chunk, req.spp - s0);
+                for (int k = 0; k < n; ++k) stream[k] = seed.stream, index[k] = uint64_t(s0 + k);
+                independent_first_2d(n, stream, index, u0, u1);
+                for (int k = 0; k < n; ++k)
+                    weights.splat<RGB<T>>(block, px, py, Vec2{float(px) + u0[k], float(py) + u1[k]}, nullptr);
+            }
+            for (int s = 0; !independent && s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
                 weights.splat<RGB<T>>(block, px, py, camera.sample_position(px, py, sampler), nullptr);
             }
@@ -642,34 +653,49 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // of a tile: worker w always sums the same paths in the same order, so gradients are
         // bitwise reproducible for a given number of workers, and each tile's paths are
         // shared among the workers (whose loads stay even when some tiles cost more).
-        // (The pixels' seeds are kept per tile: a worker's units run through a tile's samples.)
+        // (The pixels' seeds are kept per tile: a worker's units run through a tile's samples.
+        // In lanes, which take the independent sampler, the unit's positions are drawn in
+        // SIMD lanes first.)
         int64_t n_units = int64_t(n_tiles) * req.spp;
         std::vector<PixelSeed> tile_seeds;
+        std::vector<uint64_t> tile_streams, tile_index;
+        std::vector<float> tile_u0, tile_u1;
         int seeds_of = -1;
         for (int64_t unit = w; unit < n_units; unit += n_workers) {
             int tile = int(unit / req.spp), s = int(unit % req.spp);
             if (tile != seeds_of) {
-                tile_seeds.clear();
-                for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
-                                       [&](int, int, uint64_t key) { tile_seeds.emplace_back(req.seed, key); });
+                tile_seeds.clear(), tile_streams.clear();
+                for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx, [&](int, int, uint64_t key) {
+                    tile_seeds.emplace_back(req.seed, key);
+                    tile_streams.push_back(tile_seeds.back().stream);
+                });
+                tile_index.resize(tile_seeds.size()), tile_u0.resize(tile_seeds.size()), tile_u1.resize(tile_seeds.size());
                 seeds_of = tile;
+            }
+            if (lanes_ctx) {
+                std::fill(tile_index.begin(), tile_index.end(), uint64_t(s));
+                independent_first_2d(int(tile_seeds.size()), tile_streams.data(), tile_index.data(), tile_u0.data(),
+                                     tile_u1.data());
             }
             size_t pixel = 0;
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t key) {
-                const PixelSeed &seed = tile_seeds[pixel++];
+                const size_t i = pixel++;
+                const PixelSeed &seed = tile_seeds[i];
+                if (lanes_ctx) {
+                    RGB<T> dL = gather(px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
+                    if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
+                    batch[n_batch] = {px, py, seed, s};
+                    keys[n_batch] = key;
+                    adjoints[n_batch++] = dL;
+                    if (n_batch == WavefrontBatch) flush();
+                    return;
+                }
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
                 Vec2 pos = camera.sample_position(px, py, sampler);
                 RGB<T> dL = gather(px, py, pos);
                 if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
-                if (!lanes_ctx) {
-                    tape_sample(sampler, pos, dL);
-                    return;
-                }
-                batch[n_batch] = {px, py, seed, s};
-                keys[n_batch] = key;
-                adjoints[n_batch++] = dL;
-                if (n_batch == WavefrontBatch) flush();
+                tape_sample(sampler, pos, dL);
             });
         }
         if (n_batch > 0) flush();

@@ -116,6 +116,20 @@ RBPT_INLINE void pcg32_seed(uint64_t key, uint64_t sample, uint64_t *state, uint
 /// A float uniform in [0, 1) from 32 random bits (their top 24 as the mantissa).
 RBPT_INLINE float uniform_float(uint32_t bits) { return float(bits >> 8) * 0x1p-24f; }
 
+/// The first two uniforms of the independent sampler's streams (keys[k], samples[k]), k < n,
+/// the position in the pixel that Camera::sample_position draws: the same numbers as
+/// Sampler's, in a loop the compiler vectorises (render_bwd's film weights and gathers).
+RBPT_INLINE void independent_first_2d(int n, const uint64_t *keys, const uint64_t *samples, float *u0,
+                                      float *u1) {
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        uint64_t state, inc;
+        pcg32_seed(keys[k], samples[k], &state, &inc);
+        u0[k] = uniform_float(pcg32_next(state, inc));
+        u1[k] = uniform_float(pcg32_next(state, inc));
+    }
+}
+
 enum class SamplerType { Independent, Stratified, Multijitter, Orthogonal, LowDiscrepancy };
 
 /// A sampler plugin's settings: its kind, `jitter`, and the sample count rounded as
