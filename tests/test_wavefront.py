@@ -107,6 +107,21 @@ def backward(scene, keys, spp=8, seed=4):
     return {k: g for k, g in zip(scene._keys, grads) if g is not None}, lanes, taped
 
 
+def assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=8):
+    """Every path of the backward pass traced in lanes, and the gradients at `keys` (each
+    nonzero) those of the tape on the same paths, to float rounding."""
+    assert all(k in scene._keys for k in keys), scene._keys
+    grads, lanes, taped = backward(scene, keys, spp=spp)
+    assert lanes == 21 * 13 * spp and taped == 0
+    with monkeypatch.context() as m:
+        m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+        tape_grads, _, _ = backward(scene, keys, spp=spp)
+    for k in keys:
+        scale = float(tape_grads[k].abs().max())
+        assert scale > 0, k
+        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+
+
 def test03_gradients_with_the_wavefront_forward_pass(tmp_path, monkeypatch):
     # The forward pass of a differentiable render takes the wavefront, or the scalar
     # integrator: the gradient does not depend on which forward ran (the backward pass traces
@@ -371,15 +386,7 @@ def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
             "floor.bsdf.reflectance.value", "mirror.bsdf.specular_reflectance.value",
             "panel_mirror.bsdf.brdf_0.specular_reflectance.color0.value",
             "panel_mirror.bsdf.brdf_0.specular_reflectance.color1.value", "metal.bsdf.specular_reflectance.value"]
-    assert all(k in scene._keys for k in keys), scene._keys
-    grads, lanes, taped = backward(scene, keys)
-    assert lanes == 21 * 13 * 8 and taped == 0
-    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
-    tape_grads, _, _ = backward(scene, keys)
-    for k in keys:
-        scale = float(tape_grads[k].abs().max())
-        assert scale > 0, k
-        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
 
 
 @pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}, {"max_depth": 2}, {"rr_depth": 1}])
@@ -398,15 +405,7 @@ def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, ligh
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
-    keys = ["sky.radiance.value", "floor.bsdf.reflectance.value"]
-    lanes_grads, lanes, taped = backward(scene, keys)
-    assert lanes == 21 * 13 * 8 and taped == 0
-    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
-    tape_grads, _, _ = backward(scene, keys)
-    for k in keys:
-        scale = float(tape_grads[k].abs().max())
-        assert scale > 0, k
-        torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+    assert_lanes_give_the_tapes_gradients(scene, ["sky.radiance.value", "floor.bsdf.reflectance.value"], monkeypatch)
 
 
 @pytest.mark.parametrize("lights", ["area lights", "environment only"])
@@ -434,12 +433,4 @@ def test13_backward_in_lanes_for_ggx_roughness(tmp_path, monkeypatch, lights):
     scene = tr.load_dict(d)
     keys = ["metal.bsdf.alpha.value", "panel_metal.bsdf.brdf_0.alpha.value", "smooth.bsdf.alpha.value",
             "metal.bsdf.specular_reflectance.value", "floor.bsdf.reflectance.value", radiance]
-    assert all(k in scene._keys for k in keys), scene._keys
-    grads, lanes, taped = backward(scene, keys, spp=16)
-    assert lanes == 21 * 13 * 16 and taped == 0
-    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
-    tape_grads, _, _ = backward(scene, keys, spp=16)
-    for k in keys:
-        scale = float(tape_grads[k].abs().max())
-        assert scale > 0, k
-        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
