@@ -592,7 +592,6 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         ParamReadLog log;
         log.watched = watched.data();
         WavefrontSample batch[WavefrontBatch];
-        uint64_t keys[WavefrontBatch];
         RGB<T> adjoints[WavefrontBatch];
         Vec2 positions[WavefrontBatch];
         RGB<float> radiance[WavefrontBatch];
@@ -613,7 +612,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
-                        Sampler sampler(camera.sampler, req.seed, keys[k], uint64_t(batch[k].s));
+                        Sampler sampler(camera.sampler, batch[k].seed, uint64_t(batch[k].s));
                         Vec2 pos = camera.sample_position(batch[k].px, batch[k].py, sampler);
                         tape_sample(sampler, pos, adjoints[k]);
                     } else if (!sample_is_finite(radiance[k])) {
@@ -679,14 +678,13 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             }
             size_t pixel = 0;
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
-                                   [&](int px, int py, uint64_t key) {
+                                   [&](int px, int py, uint64_t) {
                 const size_t i = pixel++;
                 const PixelSeed &seed = tile_seeds[i];
                 if (lanes_ctx) {
                     RGB<T> dL = gather(px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
                     if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
                     batch[n_batch] = {px, py, seed, s};
-                    keys[n_batch] = key;
                     adjoints[n_batch++] = dL;
                     if (n_batch == WavefrontBatch) flush();
                     return;
