@@ -585,7 +585,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         };
         // In lanes: batches of samples traced by the float wavefront, each vertex of a
         // differentiated reflectance or transmittance (linear_in_inputs) depositing
-        // dL . (L - L_before) / rho into what it read, each emission of a differentiated radiance dL . C / Le; the tape re-traces the
+        // dL . (L - L_before) / rho into what it read, each emission of a differentiated
+        // radiance dL . C / Le, each GGX conductor's vertex of a differentiated roughness
+        // dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)); the tape re-traces the
         // paths that read those parameters otherwise, or where rho or Le has a zero channel
         // (the quotient fails).
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
@@ -608,7 +610,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
                 for (const WavefrontVertex &v : record.vertices)
                     for (int c = 0; c < 3; ++c)
-                        if (v.seq >= 0 && v.to_end != 2 && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                        if (v.seq >= 0 && v.kind != WavefrontVertex::Roughness && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
@@ -626,12 +628,13 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];
                     for (int c = 0; c < 3; ++c) {
-                        if (v.to_end == 2) {  // a roughness: the emitter sample's C_e, then the rest
+                        if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
                             double C = double(v.value[c]), rest = double(L[c]) - double(v.gathered[c]) - C;
                             g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
                             continue;
                         }
-                        double C = v.to_end ? double(L[c]) - double(v.gathered[c]) : double(v.gathered[c]);
+                        double C = v.kind == WavefrontVertex::Input ? double(L[c]) - double(v.gathered[c])
+                                                                    : double(v.gathered[c]);
                         g[c] = double(dL[c]) * C / double(v.value[c]);
                     }
                     double *grad = params.grad[size_t(v.read.param)];

@@ -759,7 +759,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
         if (!log || log->count != reads_before + 1 || log->last.param != e.radiance) return 0;
         RGB<float> radiance = Params<RGB<float>>::value_of(ctx.params.data[size_t(e.radiance)], ctx.params.numel[size_t(e.radiance)]);
-        record->vertices.push_back({b.seq[k], 0, {Le[0], Le[1], Le[2]}, {radiance[0], radiance[1], radiance[2]}, log->last});
+        record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {Le[0], Le[1], Le[2]}, {radiance[0], radiance[1], radiance[2]}, log->last});
         return 1;
     };
     auto unexpected_reads = [&](int k, int reads_before, int expected) {
@@ -895,7 +895,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             auto keep = [&](int reads_before, const Color3f &value) {
                 // A differentiated input: the vertex, for render_bwd's deposit.
                 if (!log || !linear || log->count != reads_before + 1) return -1;
-                record->vertices.push_back({b.seq[k], 1, {b.Lr[k], b.Lg[k], b.Lb[k]}, {value.v[0], value.v[1], value.v[2]}, log->last});
+                record->vertices.push_back({b.seq[k], WavefrontVertex::Input, {b.Lr[k], b.Lg[k], b.Lb[k]}, {value.v[0], value.v[1], value.v[2]}, log->last});
                 ++expected;
                 return int(record->vertices.size()) - 1;
             };
@@ -932,7 +932,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 wi.z = m.twosided != 0 && wi.z < 0.f ? wi.z * -1.f : wi.z;  // (the vertex stage's flip)
                 ParamRead read;
                 read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
-                WavefrontVertex v{b.seq[k], 2, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
+                WavefrontVertex v{b.seq[k], WavefrontVertex::Roughness, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
                 v.dlog[0] = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
                                                                          Vec3{b.nwx[k], b.nwy[k], b.nwz[k]}) : 0.f;
                 v.dlog[1] = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
@@ -969,7 +969,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                         read.param = light.radiance_param, read.n = 1, read.weight[0] = 1.f;
                         read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
                         const Color3f &Le = light.radiance;
-                        record->vertices.push_back({b.seq[k], 0, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
+                        record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
                     }
                 }
             }

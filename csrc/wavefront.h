@@ -22,8 +22,7 @@
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
 // every emitter is such a mesh or the `constant` environment and some BSDF is one of those;
-// other scenes, and the autodiff
-// number types, take path_li. render_bwd also traces its paths with it, for gradients of
+// other scenes, and the autodiff number types, take path_li. render_bwd also traces its paths with it, for gradients of
 // the inputs of lanes linear in them, of emitters' radiance and of GGX conductors' roughness
 // (WavefrontVertex).
 #pragma once
@@ -127,10 +126,11 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s), dlog = d log f / d alpha
 /// (RoughConductorBSDF::dlog_dalpha).
 struct WavefrontVertex {
+    /// Emission: `gathered` is C, `value` Le; Input: `gathered` is L_before, `value` rho;
+    /// Roughness: `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s.
+    enum Kind { Emission = 0, Input = 1, Roughness = 2 };
     int seq;            ///< the sample's index in the caller's arrays (-1: void)
-    /// 1: a BSDF input, `gathered` is L_before; 0: an emission, `gathered` is C; 2: a
-    /// roughness, `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s
-    int to_end;
+    int kind;           ///< a Kind
     float gathered[3];
     float value[3];     ///< the input (rho), or Le
     ParamRead read;     ///< the differentiated parameter it came from
