@@ -3,6 +3,8 @@
 // Sampling decisions (directions, emitter choice, roulette) use detached values only.
 #pragma once
 
+#include <optional>
+
 #include "sampler.h"
 #include "scene.h"
 
@@ -17,6 +19,22 @@ struct IntegratorSettings {
     int emitter_samples = 1, bsdf_samples = 1;  ///< direct
     bool hide_emitters = false;  ///< drop emitters seen directly by the camera
 };
+
+/// The `path` settings under which path_li computes what `cfg` computes, with the same random
+/// numbers and the same operations in the same order: `path` itself, and `direct` with one
+/// emitter sample and one BSDF sample, which is path_li's first vertex with max_depth 2 and
+/// no roulette (compare direct_li with path_li and path_vertex: its MIS weights' factors
+/// 1/2 and 1/1 are exact). Nothing for other `direct` settings. (The wavefront runs `path`
+/// only; tests/test_wavefront.py checks `direct` against direct_li bitwise.)
+inline std::optional<IntegratorSettings> path_settings(const IntegratorSettings &cfg) {
+    if (cfg.type == IntegratorType::Path) return cfg;
+    if (cfg.emitter_samples != 1 || cfg.bsdf_samples != 1 || cfg.max_depth == 0) return std::nullopt;
+    IntegratorSettings path = cfg;
+    path.type = IntegratorType::Path;
+    path.max_depth = 2;
+    path.rr_depth = 2;  // (roulette starts where depth + 1 >= rr_depth: after the last vertex)
+    return path;
+}
 
 /// Power heuristic with Mitsuba's guard against non-finite weights.
 inline float mis_weight(float a, float b) {

@@ -155,14 +155,6 @@ static float solid_angle_pdf(float area, const Vec3 &ref, const Vec3 &p, const V
     return area_to_solid_angle(area, dist2, std::abs(dot(n, d)) / std::sqrt(dist2));
 }
 
-/// Squared radius beyond which a reference point counts as outside a sphere. Points on the
-/// sphere itself (its own shading points) count as inside when its normals face inwards,
-/// as in Mitsuba (which scales the radius by 1 +- epsilon).
-static float outside_radius2(const Shape &shape) {
-    float r = shape.radius * (shape.flip_normals ? 1.f + 1e-4f : 1.f - 1e-4f);
-    return r * r;
-}
-
 DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec2 u) const {
     const Shape &shape = shapes[shape_index];
     DirectionSample ds;
@@ -222,10 +214,10 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
             float inv_dc = 1.f / std::sqrt(dc2);
             float sin_max = shape.radius * inv_dc, sin_max2 = sin_max * sin_max;
             float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
-            // Taylor expansion for small cones, where 1 - cos_max cancels badly.
-            float sin2 = sin_max2 > 0.00068523f
-                             ? 1.f - std::pow((cos_max - 1.f) * u.x + 1.f, 2.f)
-                             : sin_max2 * u.x;
+            // Taylor expansion for small cones, where 1 - cos_max cancels badly. (A square as
+            // a product, as Mitsuba's dr::sqr: std::pow(x, 2) is not always x * x's rounding.)
+            float t = (cos_max - 1.f) * u.x + 1.f;
+            float sin2 = sin_max2 > 0.00068523f ? 1.f - t * t : sin_max2 * u.x;
             float cos = safe_sqrt(1.f - sin2);
             float cos_alpha = sin2 * inv_sin_max +
                               cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);

@@ -279,6 +279,14 @@ struct AnalyticHit {
 AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmin,
                                                      float tmax);
 
+/// Squared radius beyond which a reference point counts as outside a sphere. Points on the
+/// sphere itself (its own shading points) count as inside when its normals face inwards,
+/// as in Mitsuba (which scales the radius by 1 +- epsilon).
+inline float outside_radius2(const Shape &shape) {
+    float r = shape.radius * (shape.flip_normals ? 1.f + 1e-4f : 1.f - 1e-4f);
+    return r * r;
+}
+
 /// Scene geometry: global vertex arrays, triangles, analytic primitives and the shapes they
 /// belong to.
 struct Geometry {

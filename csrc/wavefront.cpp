@@ -16,7 +16,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     const char *env = std::getenv("TORCH_RBPT_WAVEFRONT");
     if (env && std::strcmp(env, "0") == 0) return std::nullopt;
     const Scene &scene = ctx.scene;
-    if (cfg.type != IntegratorType::Path || cfg.max_depth == 0) return std::nullopt;
+    std::optional<IntegratorSettings> path = path_settings(cfg);
+    if (!path || path->max_depth == 0) return std::nullopt;
     if (camera.sampler.type != SamplerType::Independent) return std::nullopt;
     // (The interaction stage gathers from the triangles, clamping indices to the last one.)
     if (scene.emitters.empty() || scene.geometry.triangles.empty()) return std::nullopt;
@@ -75,31 +76,45 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.sphere_lanes.push_back(0), ws.sphere_center.push_back(Vec3()), ws.sphere_radius.push_back(1.f);
         ws.sphere_sign.push_back(1.f);
     }
+    // The lights without a mesh (the environment, spheres) get a unit triangle in the flat
+    // arrays, which the vector stage gathers from and ignores.
+    auto unit_triangle = [&ws]() {
+        for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
+        for (int t = 0; t < 8; ++t) {
+            ws.vertices.insert(ws.vertices.end(), {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}});
+            ws.normals.insert(ws.normals.end(), 3, Vec3());
+            ws.face_normals.push_back(Vec3{0.f, 0.f, 1.f});
+        }
+    };
     for (const Emitter &e : scene.emitters) {
+        WavefrontScene::Light light;
+        light.radiance = ctx.params.spectrum(e.radiance);
+        light.radiance_param = e.radiance;
         if (e.type == EmitterType::Constant) {
-            // The environment: no mesh (its entries in the flat arrays are a unit triangle,
-            // which the vector stage gathers from and ignores).
             ws.environment = true;
-            ws.lights.push_back({ctx.params.spectrum(e.radiance), e.radiance, 0, 0, 1.f, 1.f});
-            for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
-            for (int t = 0; t < 8; ++t) {
-                ws.vertices.insert(ws.vertices.end(), {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}});
-                ws.normals.insert(ws.normals.end(), 3, Vec3());
-                ws.face_normals.push_back(Vec3{0.f, 0.f, 1.f});
-            }
+            light.environment = 1.f;
+            ws.lights.push_back(light);
+            unit_triangle();
             continue;
         }
         if (e.type != EmitterType::Area) return std::nullopt;
         const Shape &shape = scene.geometry.shapes[e.shape];
+        light.area = shape.area;
+        if (shape.kind == ShapeKind::Sphere) {
+            ws.any_sphere_lights = true;
+            light.sphere = 1.f;
+            light.cx = shape.center.x, light.cy = shape.center.y, light.cz = shape.center.z;
+            light.radius = shape.radius;
+            light.outside_radius2 = outside_radius2(shape);
+            light.sign = shape.flip_normals ? -1.f : 1.f;
+            ws.lights.push_back(light);
+            unit_triangle();
+            continue;
+        }
         if (shape.kind != ShapeKind::Mesh || shape.tri_count == 0 || shape.tri_count > 8) return std::nullopt;
         const Geometry &g = scene.geometry;
-        WavefrontScene::Light light;
-        light.radiance = ctx.params.spectrum(e.radiance);
-        light.radiance_param = e.radiance;
         light.has_normals = shape.has_normals;
         light.flip_normals = shape.flip_normals;
-        light.area = shape.area;
-        light.environment = 0.f;
         for (uint32_t i = 0; i < 9; ++i) ws.cdf.push_back(i <= shape.tri_count ? shape.tri_cdf[i] : 2.f);
         for (uint32_t t = 0; t < 8; ++t) {
             const Triangle &tri = g.triangles[shape.tri_begin + std::min(t, shape.tri_count - 1)];
@@ -308,14 +323,17 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
-/// dielectrics (which sample no emitter), whether some are rough; Env: whether one emitter is
-/// the `constant` environment. The code of the BSDFs and emitters a scene does not have is
-/// left out.
-template <bool OneLight, bool Delta, bool Rough, bool Env>
+/// dielectrics (which sample no emitter), whether some are rough; NonMesh: whether some
+/// emitters have no mesh (the `constant` environment, spheres). The code of the BSDFs and
+/// emitters a scene does not have is left out.
+template <bool OneLight, bool Delta, bool Rough, bool NonMesh>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
+    // (With one light, its fields are invariants of the loop: a load of one under a condition
+    // would become a masked load of one address, which GCC does not vectorise.)
+    const WavefrontScene::Light first = ws.lights[0];
     const float *cdfs = ws.cdf.data();
     const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
     const Vec3 *face_normals = ws.face_normals.data();
@@ -348,9 +366,38 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         u.y = next_1d(b, k, draw_emitter);
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
-        const WavefrontScene::Light &light = lights[index];
-        // (The environment's direction: uniform on the sphere, from u as selection left it.)
-        const Vec3 env_d = Env ? warp::square_to_uniform_sphere(u) : Vec3();
+        const WavefrontScene::Light &light = OneLight ? first : lights[index];
+        // (The environment's direction, and a sphere's point seen from inside it: uniform on
+        // the sphere, from u as selection left it.)
+        const Vec3 env_d = NonMesh ? warp::square_to_uniform_sphere(u) : Vec3();
+        // A sphere seen from outside (Geometry::sample_direction): a direction in the cone it
+        // subtends, the Taylor expansion for small cones, and the cone's density.
+        Vec3 cone_d;
+        float outside = 0.f, cone_pdf = 0.f;
+        if constexpr (NonMesh) {
+            const Vec3 center{light.cx, light.cy, light.cz};
+            Vec3 dc = center - p;
+            float dc2 = squared_norm(dc);
+            outside = dc2 > light.outside_radius2 ? 1.f : 0.f;
+            float inv_dc = 1.f / std::sqrt(dc2);
+            float sin_max = light.radius * inv_dc, sin_max2 = sin_max * sin_max;
+            float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
+            float wide = sin_max2 > 0.00068523f ? 1.f : 0.f;
+            float t = (cos_max - 1.f) * u.x + 1.f;
+            float sin2 = wide != 0.f ? 1.f - t * t : sin_max2 * u.x;
+            float cos = safe_sqrt(1.f - sin2);
+            float cos_alpha = sin2 * inv_sin_max + cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
+            float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
+            Vec2 cs = warp::cossin_2pi(u.y);
+            // Frame(axis).to_world, written out (see the shading frame below).
+            Vec3 axis = dc * -inv_dc;
+            float sign = std::copysign(1.f, axis.z);
+            float fa = -1.f / (sign + axis.z), fb = axis.x * axis.y * fa;
+            Vec3 as{1.f + sign * axis.x * axis.x * fa, sign * fb, -sign * axis.x};
+            Vec3 at{fb, sign + axis.y * axis.y * fa, -axis.y};
+            cone_d = as * (cs.x * sin_alpha) + at * (cs.y * sin_alpha) + axis * cos_alpha;
+            cone_pdf = wide != 0.f ? warp::square_to_uniform_cone_pdf(cos_max) : 1.f / (Pi * sin_max2);
+        }
         const int c = 9 * index;  // the light's CDF in light_cdf
         uint32_t local = 0;
         for (int i = 1; i < 8; ++i) local += cdfs[c + i] <= u.x;
@@ -364,19 +411,28 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 vn = normalize(normals[3 * t] * b0 + normals[3 * t + 1] * bc.x + normals[3 * t + 2] * bc.y);
         Vec3 ln = select(light.has_normals, vn, face_n);
         ln = select(light.flip_normals, -ln, ln);
+        if constexpr (NonMesh) {
+            // A sphere's point (its normal the direction from the centre, times the sign; seen
+            // from inside, its density converts with the unsigned one, as a mesh's face normal).
+            Vec3 sd = select(outside != 0.f, cone_d, env_d);
+            const bool sphere = light.sphere != 0.f;
+            lp = select(sphere, Vec3{light.cx, light.cy, light.cz} + sd * light.radius, lp);
+            face_n = select(sphere, sd, face_n);
+            ln = select(sphere, sd * light.sign, ln);
+        }
         Vec3 d = lp - p;
         float dist2 = squared_norm(d), dist = std::sqrt(dist2);
         d = d * (1.f / dist);
         float abs_cos = std::abs(dot(face_n, d));
         float area_pdf = dist2 / (light.area * abs_cos);
         float pdf = abs_cos > 0.f ? area_pdf : 0.f;
+        if constexpr (NonMesh) pdf = light.sphere * outside != 0.f ? cone_pdf : pdf;  // (flags: 1 or 0)
         // A sample: emitter_sample's test pdf > 0 (sample_direction's pdf is zero at distance
         // zero) and d facing the light's front.
         float sampled = dist != 0.f ? smooth : 0.f;
-        sampled = abs_cos > 0.f ? sampled : 0.f;
-        sampled = area_pdf > 0.f ? sampled : 0.f;
+        sampled = pdf > 0.f ? sampled : 0.f;
         sampled = dot(d, ln) < 0.f ? sampled : 0.f;
-        if constexpr (Env) {
+        if constexpr (NonMesh) {
             // The environment (emitter_sample's `constant`): a direction, always a sample.
             const float env = light.environment;
             d = select(env != 0.f, env_d, d);
@@ -418,12 +474,12 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.cg[k] = b.bg[k] * f.v[1] * ew.v[1] * w;
         b.cb[k] = b.bb[k] * f.v[2] * ew.v[2] * w;
         // Its shadow ray (SurfaceInteraction::spawn_ray_to; the environment's: spawn_ray).
-        Vec3 so = offset_p(b, k, Env ? select(light.environment != 0.f, d, lp - p) : lp - p);
+        Vec3 so = offset_p(b, k, NonMesh ? select(light.environment != 0.f, d, lp - p) : lp - p);
         Vec3 sd = lp - so;
         float sdist = norm(sd);
         sd = sd / sdist;
         float stmax = sdist * (1.f - ShadowEpsilon);
-        if constexpr (Env) {
+        if constexpr (NonMesh) {
             sd = select(light.environment != 0.f, d, sd);
             stmax = light.environment != 0.f ? Infinity : stmax;
         }
@@ -525,7 +581,7 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
     return with_flags([](auto one_light, auto delta, auto rough, auto env) -> VertexStage {
         return vertex_stage<decltype(one_light)::value, decltype(delta)::value, decltype(rough)::value,
                             decltype(env)::value>;
-    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment);
+    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment || ws.any_sphere_lights);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
@@ -742,10 +798,11 @@ RBPT_INLINE Ray load_ray(const Batch &b, int k) {
 }  // namespace
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
-                     const IntegratorSettings &cfg, const Camera &camera,
+                     const IntegratorSettings &settings, const Camera &camera,
                      const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
                      WavefrontRecord *record) {
     const Scene &scene = ctx.scene;
+    const IntegratorSettings cfg = *path_settings(settings);  // (wavefront_scene() checked it)
     // Recording: reads of differentiated parameters other than a linear input's or an
     // emission's send the path to the tape.
     ParamReadLog *log = record ? ctx.params.log : nullptr;

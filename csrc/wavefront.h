@@ -16,12 +16,13 @@
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
 // vector stage shades diffuse BSDFs (`twosided` or not), the GGX roughconductor and
-// roughplastic, with their emitter samples on area emitters on meshes of at most 8
-// triangles, and the smooth conductor and dielectric; their
+// roughplastic, with their emitter samples on area emitters on spheres and on meshes of at
+// most 8 triangles, and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
-// in the shade stage. It runs for the `path` integrator with the `independent` sampler, when
-// every emitter is such a mesh or the `constant` environment and some BSDF is one of those;
+// in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
+// kind, as path_settings() makes it) with the `independent` sampler, when every emitter is such
+// a sphere or mesh or the `constant` environment and some BSDF is one of those;
 // other scenes, and the autodiff number types, take path_li. render_bwd also traces its paths with it, for gradients of
 // the inputs of lanes linear in them, of emitters' radiance and of GGX conductors' roughness
 // (WavefrontVertex).
@@ -57,10 +58,16 @@ struct WavefrontScene {
     };
     struct Light {
         Color3f radiance;
-        int radiance_param;  ///< Emitter::radiance
-        int has_normals, flip_normals;  // (ints, not bools: the vector loop gathers them)
-        float area;
-        float environment;   ///< 1: the `constant` environment (no mesh), 0: an area light
+        int radiance_param = -1;  ///< Emitter::radiance
+        int has_normals = 0, flip_normals = 0;  // (ints, not bools: the vector loop gathers them)
+        float area = 1.f;
+        float environment = 0.f;  ///< 1: the `constant` environment (no mesh), else 0
+        /// 1: an area light on a sphere (no mesh), else 0; its centre (three floats: GCC does
+        /// not vectorise gathers of a Vec3 member here), radius, the squared radius beyond which
+        /// a point is outside (Geometry::sample_direction) and its normals' sign.
+        float sphere = 0.f;
+        float cx = 0.f, cy = 0.f, cz = 0.f;
+        float radius = 1.f, outside_radius2 = 1.f, sign = 1.f;
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
@@ -79,8 +86,10 @@ struct WavefrontScene {
     bool any_spheres = false;
     std::vector<Light> lights;        ///< per Scene::emitters
     bool environment = false;         ///< whether one is the `constant` environment
+    bool any_sphere_lights = false;   ///< whether some are spheres
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
-    // from with one base address each: light e's triangle t is entry 8 e + t.
+    // from with one base address each: light e's triangle t is entry 8 e + t. (The
+    // environment's and the spheres' entries are a unit triangle, gathered and ignored.)
     std::vector<float> cdf;      ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)
     std::vector<Vec3> vertices;  ///< 3 per triangle
     std::vector<Vec3> normals;   ///< vertex normals, 3 per triangle (zero without them)

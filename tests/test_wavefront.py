@@ -345,8 +345,8 @@ def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change
         d["sky"] = {"type": "constant"}
     elif change == "stratified":
         d["sensor"]["sampler"] = {"type": "stratified"}
-    elif change == "direct":
-        d["integrator"] = {"type": "direct"}
+    elif change == "direct":  # (one sample of each is path tracing's first vertex: lanes)
+        d["integrator"] = {"type": "direct", "emitter_samples": 2}
     scene = tr.load_dict(d, dtype=torch.float64 if change == "float64" else torch.float32)
     assert not uses_wavefront(scene)
     assert uses_wavefront(room(tmp_path))
@@ -434,3 +434,61 @@ def test13_backward_in_lanes_for_ggx_roughness(tmp_path, monkeypatch, lights):
     keys = ["metal.bsdf.alpha.value", "panel_metal.bsdf.brdf_0.alpha.value", "smooth.bsdf.alpha.value",
             "metal.bsdf.specular_reflectance.value", "floor.bsdf.reflectance.value", radiance]
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+
+
+def sphere_lights(d, lights):
+    """The room `d` lit by a small sphere (its cone sampled from outside) and a tiny one (the
+    cone's Taylor expansion), beside its mesh lights, or by one of those, or by a sphere
+    around the room with its normals flipped inwards (a uniform point, seen from inside)."""
+    bulb = {"type": "sphere", "radius": 0.15, "center": [0.4, 1.2, 0.3],
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [8.0, 6.0, 3.0]}}}
+    # sin^2 of the cone (0.02 / distance)^2 is below the expansion's 0.00068523 beyond 0.77
+    star = {"type": "sphere", "radius": 0.02, "center": [-0.5, 1.4, 1.0], "emitter": {"type": "area", "radiance": 400.0}}
+    dome = {"type": "sphere", "radius": 6.0, "flip_normals": True, "emitter": {"type": "area", "radiance": 0.5}}
+    if lights != "spheres and meshes":
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+    if lights == "one sphere":
+        d["bulb"] = bulb
+    elif lights == "enclosing sphere":
+        d["dome"] = dome
+    else:
+        d["bulb"], d["star"] = bulb, star
+    return d
+
+
+@pytest.mark.parametrize("lights", ["spheres and meshes", "one sphere", "enclosing sphere"])
+def test14_sphere_lights_in_lanes(tmp_path, monkeypatch, lights):
+    # Area lights on spheres: emitter samples in the vector stage (Geometry::sample_direction's
+    # cone from outside, its small-cone expansion, a uniform point from inside), the image
+    # bitwise path_li's; their radiance differentiated in lanes, with a reflectance.
+    scene = tr.load_dict(sphere_lights(room_dict(tmp_path), lights))
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    radiance = {"one sphere": "bulb", "enclosing sphere": "dome"}.get(lights, "star") + ".emitter.radiance.value"
+    assert_lanes_give_the_tapes_gradients(scene, [radiance, "floor.bsdf.reflectance.value"], monkeypatch)
+
+
+@pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}])
+def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monkeypatch, integrator):
+    # `direct` with one emitter sample and one BSDF sample computes path_li's first vertex
+    # (path_settings()): it takes the lanes, and its image is direct_li's bit for bit, with
+    # diffuse, mirror, glass and rough vertices under mesh lights, spheres and the sky; and so
+    # on the shared veach-mis (roughplastic plates, spheres down to the cone's expansion).
+    d = sphere_lights(room_dict(tmp_path), "spheres and meshes")
+    d["integrator"] = {"type": "direct", **integrator}
+    d["sky"] = {"type": "constant", "radiance": 0.2}
+    d["mirror"] = {"type": "sphere", "radius": 0.2, "center": [0.3, 0.25, 0.2], "bsdf": {"type": "conductor"}}
+    d["glass"] = {"type": "sphere", "radius": 0.2, "center": [-0.1, 0.45, 0.6], "bsdf": {"type": "dielectric"}}
+    d["metal"] = {"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, -0.2],
+                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}}
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    veach = tr.load_file(SHARED / "veach-mis/integrator_direct_both.xml")
+    veach.sensor.film.width, veach.sensor.film.height = 48, 32
+    wavefront, scalar = render_both(veach, monkeypatch, spp=4, seed=3)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
