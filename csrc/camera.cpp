@@ -14,9 +14,7 @@ float Filter::eval(float x) const {
 void Filter::prepare() {
     inv_radius_ = 1.f / radius;
     gaussian_.alpha = -1.f / (2.f * stddev * stddev);
-    gaussian_.bias = std::exp(gaussian_.alpha * radius * radius);
-    for (int j = 0; j < 2 * MaxBorder + 1; ++j)
-        gaussian_.square_exp[j] = std::exp(gaussian_.alpha * float(j * j));
+    gaussian_.bias = exp_poly(gaussian_.alpha * radius * radius);
 }
 
 void Filter::eval_row_other(float x0, int n, float *w) const {
@@ -24,34 +22,18 @@ void Filter::eval_row_other(float x0, int n, float *w) const {
         case FilterType::Box:
         case FilterType::Tent:
             return eval_row(x0, n, w);  // (inline in camera.h)
-        case FilterType::Gaussian: {
-            const float alpha = gaussian_.alpha;
-            if (n == 1) {
-                w[0] = std::max(0.f, std::exp(alpha * x0 * x0) - gaussian_.bias);
-                return;
-            }
-            // Two exps per row instead of one per weight. From the offset x nearest zero,
-            //   exp(alpha (x + j)^2) = exp(alpha x^2) exp(2 alpha x)^j exp(alpha j^2),
-            // with the last factor tabulated. Every exponent stays small where the weights are
-            // large (|2 alpha x| <= |alpha| < 32 for a filter wider than a pixel), so each
-            // weight is within a few ulps of its exp.
-            int c = std::clamp(int(std::floor(0.5f - x0)), 0, n - 1);
-            float x = x0 + float(c);
-            float center = std::exp(alpha * x * x), step = std::exp(2.f * alpha * x);
-            w[c] = std::max(0.f, center - gaussian_.bias);
-            float g = center;
-            for (int j = 1; c + j < n; ++j) {
-                g *= step;
-                w[c + j] = std::max(0.f, g * gaussian_.square_exp[j] - gaussian_.bias);
-            }
-            g = center;
-            float inv_step = 1.f / step;
-            for (int j = 1; c - j >= 0; ++j) {
-                g *= inv_step;
-                w[c - j] = std::max(0.f, g * gaussian_.square_exp[j] - gaussian_.bias);
+        case FilterType::Gaussian:
+            // exp_poly's polynomial in blocks of eight offsets, a loop the compiler vectorises
+            // (a row of the default radius 2 is one block; libm's exp is a call per weight).
+            for (int k0 = 0; k0 < n; k0 += 8) {
+                float block[8];
+                for (int k = 0; k < 8; ++k) {
+                    float x = x0 + float(k0 + k);
+                    block[k] = std::max(0.f, exp_poly(gaussian_.alpha * x * x) - gaussian_.bias);
+                }
+                for (int k = 0; k < 8 && k0 + k < n; ++k) w[k0 + k] = block[k];
             }
             return;
-        }
         case FilterType::Mitchell:
             for (int k = 0; k < n; ++k) {
                 float x = std::abs(x0 + float(k)), x2 = x * x, x3 = x2 * x;

@@ -51,13 +51,11 @@ private:
     void eval_row_other(float x0, int n, float *w) const;
     /// 1 / radius (the tent's weight is 1 - |x| / radius, as Mitsuba's, with a product).
     float inv_radius_ = std::numeric_limits<float>::quiet_NaN();
-    /// The gaussian's exponent factor -1 / (2 stddev^2), its value at the radius (subtracted
-    /// so that the profile reaches zero there) and exp(alpha j^2) for the whole-pixel steps j
-    /// of a row. NaN until prepare().
+    /// The gaussian's exponent factor -1 / (2 stddev^2) and its value at the radius
+    /// (subtracted so that the profile reaches zero there). NaN until prepare().
     struct {
         float alpha = std::numeric_limits<float>::quiet_NaN();
         float bias = std::numeric_limits<float>::quiet_NaN();
-        float square_exp[2 * MaxBorder + 1];
     } gaussian_;
 };
 

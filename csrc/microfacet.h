@@ -39,28 +39,6 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
     return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
 }
 
-/// e^x for float x, from a polynomial (within 2 ulps of libm's expf; x below -87 gives
-/// e^-87): unlike libm's, it can be called in a loop that the compiler vectorises.
-RBPT_INLINE float exp_poly(float x) {
-    x = std::max(x, -87.f);
-    // x = n ln2 + r, |r| <= ln2 / 2 (n rounded by the 1.5 * 2^23 trick; ln2 in two parts)
-    float n = (x * 1.44269504f + 12582912.f) - 12582912.f;
-    float r = (x - n * 0.693145751953125f) - n * 1.428606765330187e-6f;
-    // e^r to degree 7 (relative error below 1e-8), times 2^n from its exponent bits
-    float p = 1.f / 5040.f;
-    p = p * r + 1.f / 720.f;
-    p = p * r + 1.f / 120.f;
-    p = p * r + 1.f / 24.f;
-    p = p * r + 1.f / 6.f;
-    p = p * r + 0.5f;
-    p = p * r + 1.f;
-    p = p * r + 1.f;
-    int32_t bits = (int32_t(n) + 127) << 23;
-    float scale;
-    std::memcpy(&scale, &bits, sizeof scale);
-    return p * scale;
-}
-
 /// erfc(z) for float z >= 0 (Numerical Recipes' erfcc: fractional error below 1.2e-7, plus the
 /// rounding of z^2 in float), on exp_poly, so that vectorised loops can call it.
 RBPT_INLINE float erfc_poly(float z) {
