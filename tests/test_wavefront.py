@@ -487,6 +487,9 @@ def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monke
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
+    # The backward pass in lanes, against the tape's (direct_li's) gradients.
+    keys = ["floor.bsdf.reflectance.value", "bulb.emitter.radiance.value", "metal.bsdf.alpha.value"]
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
     veach = tr.load_file(SHARED / "veach-mis/integrator_direct_both.xml")
     veach.sensor.film.width, veach.sensor.film.height = 48, 32
     wavefront, scalar = render_both(veach, monkeypatch, spp=4, seed=3)
