@@ -559,6 +559,50 @@ py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tenso
     return py::make_tuple(t, shape);
 }
 
+/// Closest hits of rays given as they are (no normalisation), with their intervals (for
+/// tests): (t, prim (-1: none), u, v), from BVH::intersect per ray, or from
+/// BVH::intersect_columns in batches of BVH::MaxColumns (`columns`).
+py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
+                       torch::Tensor tmin, torch::Tensor tmax, bool columns) {
+    int64_t n = ray_batch(origins, directions);
+    tmin = tmin.to(torch::kFloat32).contiguous();
+    tmax = tmax.to(torch::kFloat32).contiguous();
+    if (tmin.numel() != n || tmax.numel() != n) fail("tmin and tmax must have one entry per ray");
+    std::vector<float> c[8];
+    for (int a = 0; a < 3; ++a) {
+        for (int64_t i = 0; i < n; ++i) {
+            c[a].push_back(origins.data_ptr<float>()[3 * i + a]);
+            c[3 + a].push_back(directions.data_ptr<float>()[3 * i + a]);
+        }
+    }
+    c[6].assign(tmin.data_ptr<float>(), tmin.data_ptr<float>() + n);
+    c[7].assign(tmax.data_ptr<float>(), tmax.data_ptr<float>() + n);
+    torch::Tensor t = torch::empty({n}, torch::kFloat32), u = torch::empty({n}, torch::kFloat32),
+                  v = torch::empty({n}, torch::kFloat32), prim = torch::empty({n}, torch::kInt64);
+    std::vector<uint32_t> ids(static_cast<size_t>(n));
+    for (int64_t b = 0; b < n; b += BVH::MaxColumns) {
+        int m = int(std::min<int64_t>(BVH::MaxColumns, n - b));
+        HitColumns hits{t.data_ptr<float>() + b, u.data_ptr<float>() + b, v.data_ptr<float>() + b, ids.data() + b};
+        if (columns) {
+            scene.bvh.intersect_columns({c[0].data() + b, c[1].data() + b, c[2].data() + b, c[3].data() + b,
+                                         c[4].data() + b, c[5].data() + b, c[6].data() + b, c[7].data() + b},
+                                        m, hits);
+            continue;
+        }
+        for (int k = 0; k < m; ++k) {
+            Ray ray;
+            ray.o = {c[0][b + k], c[1][b + k], c[2][b + k]};
+            ray.d = {c[3][b + k], c[4][b + k], c[5][b + k]};
+            ray.tmin = c[6][b + k], ray.tmax = c[7][b + k];
+            Hit hit;
+            scene.bvh.intersect(ray, &hit);
+            hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
+        }
+    }
+    for (int64_t i = 0; i < n; ++i) prim.data_ptr<int64_t>()[i] = ids[size_t(i)] == ~0u ? -1 : int64_t(ids[size_t(i)]);
+    return py::make_tuple(t, prim, u, v);
+}
+
 /// Surface interactions of a batch of rays (for tests): (t (N,), shape (N,), p (N, 3),
 /// geometric normal n (N, 3), uv (N, 2)); misses have t = inf, shape -1 and zeros.
 py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
@@ -881,6 +925,7 @@ PYBIND11_MODULE(_C, m) {
         .def_property_readonly("triangle_count",
                                [](const Scene &s) { return s.geometry.triangles.size(); })
         .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
+        .def_property_readonly("bvh_flat", [](const Scene &s) { return s.bvh.flat(); })
         .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); });
     m.def("render_fwd", &render_image, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
@@ -904,6 +949,7 @@ PYBIND11_MODULE(_C, m) {
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
     m.def("interact_rays", &interact_rays);
+    m.def("closest_hits", &closest_hits);
     m.def("sample_count", [](const py::dict &camera, int spp) {
         SamplerDesc s = make_sampler(camera);
         set_spp(s, spp);

@@ -360,6 +360,32 @@ void BVH::build(const Geometry &geometry) {
     } else {
         collapser.node(&root_kid, 1, 0);
     }
+
+    // A small tree of triangles and spheres is also kept flat (intersect_columns()).
+    flat_triangles_.clear();
+    flat_spheres_.clear();
+    bool flat = nodes_.size() == 1;
+    int n_triangles = 0, n_spheres = 0;
+    for (const PrimPack &pack : packs_) {
+        flat = flat && pack.others == 0;
+        n_triangles += __builtin_popcount(pack.triangles);
+        n_spheres += __builtin_popcount(pack.spheres);
+    }
+    if (flat && n_triangles <= FlatTriangles && n_spheres <= FlatSpheres) {
+        for (const PrimPack &pack : packs_) {
+            for (int lane = 0; lane < BVHWidth; ++lane) {
+                if (pack.triangles >> lane & 1) {
+                    FlatTriangle t;
+                    for (int k = 0; k < 3; ++k)
+                        for (int axis = 0; axis < 3; ++axis) t.v[k][axis] = pack.tris.v[k][axis][lane];
+                    t.prim = pack.prim[lane];
+                    flat_triangles_.push_back(t);
+                }
+                if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
+            }
+        }
+        if (flat_triangles_.empty()) flat_spheres_.clear();  // (flat() means some triangles)
+    }
 }
 
 /// The slab test of a ray against all child boxes of a node at once (Williams et al. 2005):
@@ -532,6 +558,145 @@ bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit
 }
 
 bool BVH::intersect(const Ray &ray, Hit *hit) const { return traverse<false>(ray, hit); }
+
+namespace {
+
+/// x86's max: a > b ? a : b, the second operand when either is NaN (simd::max's, which
+/// intersect_triangles() uses).
+RBPT_INLINE float max_ps(float a, float b) { return a > b ? a : b; }
+
+/// c selects among a (0), b (1) and d (2): an axis of a vertex, picked per ray.
+RBPT_INLINE float pick(int c, float a, float b, float d) { return c == 0 ? a : (c == 1 ? b : d); }
+
+}  // namespace
+
+void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
+    auto trace = [&](int k) {
+        Ray ray;
+        ray.o = {r.ox[k], r.oy[k], r.oz[k]};
+        ray.d = {r.dx[k], r.dy[k], r.dz[k]};
+        ray.tmin = r.tmin[k], ray.tmax = r.tmax[k];
+        Hit hit;
+        intersect(ray, &hit);
+        hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
+    };
+    if (!flat()) {
+        for (int k = 0; k < n; ++k) trace(k);
+        return;
+    }
+    // Each ray's constants of the watertight test (RayPrecomp, RayPrecompPack), and whether
+    // it must be traced by intersect() (`retrace`: 1 or 0).
+    alignas(64) int kx[MaxColumns], ky[MaxColumns], kz[MaxColumns];
+    alignas(64) float ox[MaxColumns], oy[MaxColumns], oz[MaxColumns], sx[MaxColumns], sy[MaxColumns],
+        sz[MaxColumns], retrace[MaxColumns], best_t[MaxColumns], best_u[MaxColumns], best_v[MaxColumns];
+    alignas(64) uint32_t best_prim[MaxColumns];
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        float dx = r.dx[k], dy = r.dy[k], dz = r.dz[k];
+        float ax = std::abs(dx), ay = std::abs(dy), az = std::abs(dz);
+        int z = (ax > ay) ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2);
+        int x = z == 2 ? 0 : z + 1;
+        int y = x == 2 ? 0 : x + 1;
+        float dkz = pick(z, dx, dy, dz);
+        int swap = dkz < 0.f;
+        int x2 = swap ? y : x, y2 = swap ? x : y;
+        float dkx = pick(x2, dx, dy, dz), dky = pick(y2, dx, dy, dz);
+        kx[k] = x2, ky[k] = y2, kz[k] = z;
+        sx[k] = dkx / dkz, sy[k] = dky / dkz, sz[k] = 1.f / dkz;
+        ox[k] = pick(x2, r.ox[k], r.oy[k], r.oz[k]);
+        oy[k] = pick(y2, r.ox[k], r.oy[k], r.oz[k]);
+        oz[k] = pick(z, r.ox[k], r.oy[k], r.oz[k]);
+        // (A sum of magnitudes is finite exactly when each is.)
+        float sum = ((std::abs(r.ox[k]) + std::abs(r.oy[k])) + std::abs(r.oz[k])) + ((ax + ay) + az);
+        float finite = sum < Infinity ? 1.f : 0.f;
+        finite = dkz != 0.f ? finite : 0.f;
+        retrace[k] = finite != 0.f ? 0.f : 1.f;
+        best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u;
+    }
+    // Each triangle against every ray: intersect_triangles()'s operations, lane by lane.
+    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
+    for (const FlatTriangle &tri : flat_triangles_) {
+        const float(*v)[3] = tri.v;
+        const uint32_t prim = tri.prim;
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            float x[3], y[3], z[3];
+            for (int j = 0; j < 3; ++j) {
+                z[j] = pick(kz[k], v[j][0], v[j][1], v[j][2]) - oz[k];
+                x[j] = (pick(kx[k], v[j][0], v[j][1], v[j][2]) - ox[k]) - sx[k] * z[j];
+                y[j] = (pick(ky[k], v[j][0], v[j][1], v[j][2]) - oy[k]) - sy[k] * z[j];
+            }
+            float U = x[2] * y[1] - y[2] * x[1];
+            float Ve = x[0] * y[2] - y[0] * x[2];
+            float We = x[1] * y[0] - y[1] * x[0];
+            float edge = (U == 0.f) | (Ve == 0.f) | (We == 0.f) ? 1.f : 0.f;
+            float neg = (U < 0.f) | (Ve < 0.f) | (We < 0.f) ? 1.f : 0.f;
+            float pos = (U > 0.f) | (Ve > 0.f) | (We > 0.f) ? 1.f : 0.f;
+            float det = (U + Ve) + We;
+            float inside = neg * pos == 0.f ? 1.f : 0.f;
+            inside = det != 0.f ? inside : 0.f;
+            float T = (U * (sz[k] * z[0]) + Ve * (sz[k] * z[1])) + We * (sz[k] * z[2]);
+            float inv_det = 1.f / det;
+            float t = T * inv_det;
+            float hit = t > r.tmin[k] ? inside : 0.f;
+            hit = t < r.tmax[k] ? hit : 0.f;
+            float max_zt = std::abs(sz[k]) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
+            float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
+            float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
+            float delta_z = g3 * max_zt;
+            float delta_x = g5 * (max_xt + max_zt);
+            float delta_y = g5 * (max_yt + max_zt);
+            float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+            float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
+            float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
+            hit = t > delta_t ? hit : 0.f;
+            // An edge function exactly zero: intersect_triangles() redoes it in double.
+            retrace[k] = edge != 0.f ? 1.f : retrace[k];
+            // The nearest; a tie leaves the order to intersect()'s traversal.
+            float tie = t == best_t[k] ? hit : 0.f;
+            retrace[k] = tie != 0.f ? 1.f : retrace[k];
+            float better = t < best_t[k] ? hit : 0.f;
+            best_t[k] = better != 0.f ? t : best_t[k];
+            best_u[k] = better != 0.f ? Ve * inv_det : best_u[k];
+            best_v[k] = better != 0.f ? We * inv_det : best_v[k];
+            best_prim[k] = better != 0.f ? prim : best_prim[k];
+        }
+    }
+    // Each sphere against the rays whose line passes near it (a generous float test; the
+    // hit itself is intersect_sphere()'s, in double).
+    alignas(64) float near[MaxColumns];
+    for (uint32_t prim : flat_spheres_) {
+        const Shape &s = geometry_->analytic_shape(prim);
+        const Vec3 c = s.center;
+        const float radius = s.radius;
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            Vec3 oc{r.ox[k] - c.x, r.oy[k] - c.y, r.oz[k] - c.z};
+            Vec3 d{r.dx[k], r.dy[k], r.dz[k]};
+            float along = dot(oc, d) / dot(d, d);
+            Vec3 closest = oc - d * along;
+            float reach = radius + 1e-3f * (radius + norm(oc));
+            near[k] = squared_norm(closest) > reach * reach ? 0.f : 1.f;
+        }
+        for (int k = 0; k < n; ++k) {
+            if (near[k] == 0.f) continue;
+            Ray ray;
+            ray.o = {r.ox[k], r.oy[k], r.oz[k]};
+            ray.d = {r.dx[k], r.dy[k], r.dz[k]};
+            float t;
+            if (!intersect_sphere(ray, s.center, s.radius, r.tmin[k], r.tmax[k], &t)) continue;
+            if (t == best_t[k]) retrace[k] = 1.f;
+            if (t < best_t[k]) best_t[k] = t, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = prim;
+        }
+    }
+    for (int k = 0; k < n; ++k) {
+        if (retrace[k] != 0.f) {
+            trace(k);
+            continue;
+        }
+        hits.t[k] = best_t[k], hits.u[k] = best_u[k], hits.v[k] = best_v[k], hits.prim[k] = best_prim[k];
+    }
+}
 
 bool BVH::occluded(const Ray &ray) const {
     Hit unused;

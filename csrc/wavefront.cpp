@@ -869,12 +869,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             }
             break;
         }
-        // Trace each path's ray to its closest hit.
-        for (int k = 0; k < n; ++k) {
-            Hit hit = scene.closest_hit(load_ray(b, k));
-            b.ht[k] = hit.t, b.hu[k] = hit.u, b.hv[k] = hit.v;
-            b.prim[k] = hit.prim;
-        }
+        // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
+        scene.bvh.intersect_columns({b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax}, n,
+                                    {b.ht, b.hu, b.hv, b.prim});
+        rays_traced += uint64_t(n);
         // Complete the interactions of the triangles hit, in lanes.
         interaction_stage_for(ws)(b, n, g, ws);
         // Complete the other interactions, add the emission each ray found, MIS-weighted
