@@ -56,6 +56,10 @@ public:
         ++rays_traced;
         Hit hit;
         bvh.intersect(ray, &hit);
+        return emitter_interaction(ray, hit, emitter);
+    }
+    /// intersect_emitter() for the hit `hit` of `ray`, found already.
+    SurfaceInteraction emitter_interaction(const Ray &ray, const Hit &hit, int *emitter) const {
         *emitter = hit.valid() ? geometry.shapes[geometry.shape_of(hit.prim)].emitter : environment;
         if (*emitter < 0) return SurfaceInteraction();
         return geometry.interaction(ray, hit);

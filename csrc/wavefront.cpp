@@ -852,11 +852,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
     const Geometry &g = scene.geometry;
     for (int depth = 0; n > 0; ++depth) {
+        // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
+        scene.bvh.intersect_columns({b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax}, n,
+                                    {b.ht, b.hu, b.hv, b.prim});
+        rays_traced += uint64_t(n);
         if (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth) {
             // The last vertex max_depth allows: only the emission each ray finds (path_li's).
             for (int k = 0; k < n; ++k) {
                 int emitter, reads = log ? log->count : 0, expected = 0;
-                SurfaceInteraction si = scene.intersect_emitter(load_ray(b, k), &emitter);
+                const Hit hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
+                SurfaceInteraction si = scene.emitter_interaction(load_ray(b, k), hit, &emitter);
                 if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
                     RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
                                                    b.prev_delta[k] != 0, b.prev_pdf[k],
@@ -869,10 +874,6 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             }
             break;
         }
-        // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
-        scene.bvh.intersect_columns({b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax}, n,
-                                    {b.ht, b.hu, b.hv, b.prim});
-        rays_traced += uint64_t(n);
         // Complete the interactions of the triangles hit, in lanes.
         interaction_stage_for(ws)(b, n, g, ws);
         // Complete the other interactions, add the emission each ray found, MIS-weighted
