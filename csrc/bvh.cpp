@@ -570,6 +570,90 @@ RBPT_INLINE float pick(int c, float a, float b, float d) { return c == 0 ? a : (
 
 }  // namespace
 
+/// intersect_columns()'s rays: their intervals, the watertight test's constants (kx, ky, kz
+/// and the permuted origin and shear), and their nearest hits so far.
+struct BVH::FlatRays {
+    const float *tmin, *tmax;
+    const int *kx, *ky, *kz;
+    const float *ox, *oy, *oz, *sx, *sy, *sz;
+    float *retrace, *best_t, *best_u, *best_v;
+    uint32_t *best_prim;
+};
+
+/// G triangles against rays [0, n): intersect_triangles()'s operations, lane by lane, each
+/// triangle in turn; a ray whose nearest hit ties another, or that meets an edge function
+/// exactly zero (which intersect_triangles() redoes in double), is marked for intersect().
+template <int G>
+void BVH::flat_triangles(const FlatTriangle *tris, const FlatRays &q, int n) {
+    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
+    // (The columns as locals: loads through the struct's pointers do not vectorise.)
+    const float *q_tmin = q.tmin, *q_tmax = q.tmax, *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz;
+    const float *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
+    const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
+    float *q_retrace = q.retrace, *q_best_t = q.best_t, *q_best_u = q.best_u, *q_best_v = q.best_v;
+    uint32_t *q_best_prim = q.best_prim;
+    float vert[G][3][3];
+    uint32_t prims[G];
+    for (int i = 0; i < G; ++i) {
+        prims[i] = tris[i].prim;
+        for (int j = 0; j < 3; ++j)
+            for (int a = 0; a < 3; ++a) vert[i][j][a] = tris[i].v[j][a];
+    }
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
+        const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
+        const float tmin = q_tmin[k], tmax = q_tmax[k];
+        float retrace = q_retrace[k], best_t = q_best_t[k], best_u = q_best_u[k], best_v = q_best_v[k];
+        uint32_t best_prim = q_best_prim[k];
+#pragma GCC unroll 4
+        for (int i = 0; i < G; ++i) {
+            const float(*v)[3] = vert[i];
+            float x[3], y[3], z[3];
+            for (int j = 0; j < 3; ++j) {
+                z[j] = pick(kz, v[j][0], v[j][1], v[j][2]) - oz;
+                x[j] = (pick(kx, v[j][0], v[j][1], v[j][2]) - ox) - sx * z[j];
+                y[j] = (pick(ky, v[j][0], v[j][1], v[j][2]) - oy) - sy * z[j];
+            }
+            float U = x[2] * y[1] - y[2] * x[1];
+            float Ve = x[0] * y[2] - y[0] * x[2];
+            float We = x[1] * y[0] - y[1] * x[0];
+            float edge = (U == 0.f) | (Ve == 0.f) | (We == 0.f) ? 1.f : 0.f;
+            float neg = (U < 0.f) | (Ve < 0.f) | (We < 0.f) ? 1.f : 0.f;
+            float pos = (U > 0.f) | (Ve > 0.f) | (We > 0.f) ? 1.f : 0.f;
+            float det = (U + Ve) + We;
+            float inside = neg * pos == 0.f ? 1.f : 0.f;
+            inside = det != 0.f ? inside : 0.f;
+            float T = (U * (sz * z[0]) + Ve * (sz * z[1])) + We * (sz * z[2]);
+            float inv_det = 1.f / det;
+            float t = T * inv_det;
+            float hit = t > tmin ? inside : 0.f;
+            hit = t < tmax ? hit : 0.f;
+            float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
+            float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
+            float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
+            float delta_z = g3 * max_zt;
+            float delta_x = g5 * (max_xt + max_zt);
+            float delta_y = g5 * (max_yt + max_zt);
+            float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+            float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
+            float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
+            hit = t > delta_t ? hit : 0.f;
+            retrace = edge != 0.f ? 1.f : retrace;
+            // The nearest; a tie leaves the order to intersect()'s traversal.
+            float tie = t == best_t ? hit : 0.f;
+            retrace = tie != 0.f ? 1.f : retrace;
+            float better = t < best_t ? hit : 0.f;
+            best_t = better != 0.f ? t : best_t;
+            best_u = better != 0.f ? Ve * inv_det : best_u;
+            best_v = better != 0.f ? We * inv_det : best_v;
+            best_prim = better != 0.f ? prims[i] : best_prim;
+        }
+        q_retrace[k] = retrace, q_best_t[k] = best_t, q_best_u[k] = best_u, q_best_v[k] = best_v;
+        q_best_prim[k] = best_prim;
+    }
+}
+
 void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
     auto trace = [&](int k) {
         Ray ray;
@@ -613,55 +697,12 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
         retrace[k] = finite != 0.f ? 0.f : 1.f;
         best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u;
     }
-    // Each triangle against every ray: intersect_triangles()'s operations, lane by lane.
-    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
-    for (const FlatTriangle &tri : flat_triangles_) {
-        const float(*v)[3] = tri.v;
-        const uint32_t prim = tri.prim;
-#pragma GCC ivdep
-        for (int k = 0; k < n; ++k) {
-            float x[3], y[3], z[3];
-            for (int j = 0; j < 3; ++j) {
-                z[j] = pick(kz[k], v[j][0], v[j][1], v[j][2]) - oz[k];
-                x[j] = (pick(kx[k], v[j][0], v[j][1], v[j][2]) - ox[k]) - sx[k] * z[j];
-                y[j] = (pick(ky[k], v[j][0], v[j][1], v[j][2]) - oy[k]) - sy[k] * z[j];
-            }
-            float U = x[2] * y[1] - y[2] * x[1];
-            float Ve = x[0] * y[2] - y[0] * x[2];
-            float We = x[1] * y[0] - y[1] * x[0];
-            float edge = (U == 0.f) | (Ve == 0.f) | (We == 0.f) ? 1.f : 0.f;
-            float neg = (U < 0.f) | (Ve < 0.f) | (We < 0.f) ? 1.f : 0.f;
-            float pos = (U > 0.f) | (Ve > 0.f) | (We > 0.f) ? 1.f : 0.f;
-            float det = (U + Ve) + We;
-            float inside = neg * pos == 0.f ? 1.f : 0.f;
-            inside = det != 0.f ? inside : 0.f;
-            float T = (U * (sz[k] * z[0]) + Ve * (sz[k] * z[1])) + We * (sz[k] * z[2]);
-            float inv_det = 1.f / det;
-            float t = T * inv_det;
-            float hit = t > r.tmin[k] ? inside : 0.f;
-            hit = t < r.tmax[k] ? hit : 0.f;
-            float max_zt = std::abs(sz[k]) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
-            float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
-            float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
-            float delta_z = g3 * max_zt;
-            float delta_x = g5 * (max_xt + max_zt);
-            float delta_y = g5 * (max_yt + max_zt);
-            float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
-            float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
-            float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
-            hit = t > delta_t ? hit : 0.f;
-            // An edge function exactly zero: intersect_triangles() redoes it in double.
-            retrace[k] = edge != 0.f ? 1.f : retrace[k];
-            // The nearest; a tie leaves the order to intersect()'s traversal.
-            float tie = t == best_t[k] ? hit : 0.f;
-            retrace[k] = tie != 0.f ? 1.f : retrace[k];
-            float better = t < best_t[k] ? hit : 0.f;
-            best_t[k] = better != 0.f ? t : best_t[k];
-            best_u[k] = better != 0.f ? Ve * inv_det : best_u[k];
-            best_v[k] = better != 0.f ? We * inv_det : best_v[k];
-            best_prim[k] = better != 0.f ? prim : best_prim[k];
-        }
-    }
+    // Each triangle against every ray, G triangles per pass over the rays (their constants
+    // and best hits loaded and stored once per pass).
+    FlatRays rays{r.tmin, r.tmax, kx, ky, kz, ox, oy, oz, sx, sy, sz, retrace, best_t, best_u, best_v, best_prim};
+    const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;
+    for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4>(&flat_triangles_[i], rays, n);
+    for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1>(&flat_triangles_[i], rays, n);
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double).
     alignas(64) float near[MaxColumns];

@@ -95,6 +95,9 @@ private:
         uint32_t prim;
     };
     std::vector<FlatTriangle> flat_triangles_;
+    struct FlatRays;
+    template <int G>
+    static void flat_triangles(const FlatTriangle *tris, const FlatRays &rays, int n);
     std::vector<uint32_t> flat_spheres_;
 
     const Geometry *geometry_ = nullptr;
