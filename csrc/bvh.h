@@ -51,11 +51,15 @@ class BVH {
 public:
     /// Most rays intersect_columns() takes at once.
     static constexpr int MaxColumns = 256;
-    /// Most triangles, and spheres, of a flat BVH (see flat()). (With every ray tested
-    /// against every triangle, a render of the cbox, 12 triangles, took 0.87x the time of
-    /// one with the traversal, and one of the cornell-box, 36, took 1.16x: AMD Zen 5, 16
-    /// lanes.)
+    /// Most triangles, and spheres, of a flat BVH (see flat()): more where the build's
+    /// vectors hold 16 floats. (Renders against the traversal's on the AMD Zen 5 machine,
+    /// session 24: the cbox, 12 triangles, 0.87x the time with 16 lanes and with 8 (an
+    /// x86-64-v3 build); the cornell-box, 36, 0.94x with 16 and 1.11x with 8.)
+#ifdef __AVX512F__
+    static constexpr int FlatTriangles = 40, FlatSpheres = 8;
+#else
     static constexpr int FlatTriangles = 16, FlatSpheres = 8;
+#endif
     /// Build over every primitive of `geometry`, which must outlive the BVH.
     void build(const Geometry &geometry);
     /// Nearest hit of `ray` in (ray.tmin, ray.tmax); returns false on a miss.
