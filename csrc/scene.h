@@ -41,13 +41,6 @@ public:
         bvh.intersect(ray, &hit);
         return geometry.interaction(ray, hit);
     }
-    /// The closest hit along a ray, without its interaction (Geometry::interaction).
-    Hit closest_hit(const Ray &ray) const {
-        ++rays_traced;
-        Hit hit;
-        bvh.intersect(ray, &hit);
-        return hit;
-    }
     /// For a ray whose hit matters only as a light source: sets `emitter` to the emitter it
     /// finds (its surface's, or the environment's when it escapes; -1 if none) and returns
     /// the interaction only then (else an invalid one). Returned by value like intersect():

@@ -211,24 +211,10 @@ DirectionSample Geometry::sample_direction(int shape_index, const Vec3 &ref, Vec
         float dc2 = squared_norm(dc);
         if (dc2 > outside_radius2(shape)) {
             // Outside: sample the cone of directions subtended by the sphere (as Mitsuba).
-            float inv_dc = 1.f / std::sqrt(dc2);
-            float sin_max = shape.radius * inv_dc, sin_max2 = sin_max * sin_max;
-            float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
-            // Taylor expansion for small cones, where 1 - cos_max cancels badly. (A square as
-            // a product, as Mitsuba's dr::sqr: std::pow(x, 2) is not always x * x's rounding.)
-            float t = (cos_max - 1.f) * u.x + 1.f;
-            float sin2 = sin_max2 > 0.00068523f ? 1.f - t * t : sin_max2 * u.x;
-            float cos = safe_sqrt(1.f - sin2);
-            float cos_alpha = sin2 * inv_sin_max +
-                              cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
-            float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
-            Vec2 cs = warp::cossin_2pi(u.y);  // (cos, sin) of phi = 2 pi u.y, without libm
-            Vec3 local{cs.x * sin_alpha, cs.y * sin_alpha, cos_alpha};
-            Vec3 d = Frame(dc * -inv_dc).to_world(local);
-            ds.p = shape.center + d * shape.radius;
-            ds.n = d;
-            ds.pdf = sin_max2 > 0.00068523f ? warp::square_to_uniform_cone_pdf(cos_max)
-                                            : 1.f / (Pi * sin_max2);
+            warp::SphereConeSample cone = warp::sample_sphere_cone(dc, dc2, shape.radius, u);
+            ds.p = shape.center + cone.n * shape.radius;
+            ds.n = cone.n;
+            ds.pdf = cone.pdf;
         } else {
             Vec3 d = warp::square_to_uniform_sphere(u);
             ds.p = shape.center + d * shape.radius;

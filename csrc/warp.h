@@ -67,6 +67,34 @@ inline float square_to_uniform_cone_pdf(float cos_max) {
     return 1.f / (2.f * Pi * (1.f - cos_max));
 }
 
+/// A point of a sphere of radius `radius` seen from outside it, its centre at dc (|dc|^2 =
+/// dc2) from the viewer: uniform in the cone of directions it subtends, as Mitsuba's sphere
+/// samples it (with a Taylor expansion for small cones, where 1 - cos_max cancels badly).
+/// Returns the unit vector from the centre to the point, and the cone's solid-angle density.
+/// (Geometry::sample_direction, and the wavefront's vector stage: inline, so that a loop the
+/// compiler vectorises can call it.)
+struct SphereConeSample {
+    Vec3 n;
+    float pdf;
+};
+RBPT_INLINE SphereConeSample sample_sphere_cone(const Vec3 &dc, float dc2, float radius, Vec2 u) {
+    float inv_dc = 1.f / std::sqrt(dc2);
+    float sin_max = radius * inv_dc, sin_max2 = sin_max * sin_max;
+    float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
+    // (A square as a product, as Mitsuba's dr::sqr: std::pow(x, 2) is not always x * x's
+    // rounding.)
+    float wide = sin_max2 > 0.00068523f ? 1.f : 0.f;  // (a float flag: see wavefront.cpp)
+    float t = (cos_max - 1.f) * u.x + 1.f;
+    float sin2 = wide != 0.f ? 1.f - t * t : sin_max2 * u.x;
+    float cos = safe_sqrt(1.f - sin2);
+    float cos_alpha = sin2 * inv_sin_max + cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
+    float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
+    Vec2 cs = cossin_2pi(u.y);  // (cos, sin) of phi = 2 pi u.y, without libm
+    Vec3 local{cs.x * sin_alpha, cs.y * sin_alpha, cos_alpha};
+    return {Frame(dc * -inv_dc).to_world(local),
+            wide != 0.f ? square_to_uniform_cone_pdf(cos_max) : 1.f / (Pi * sin_max2)};
+}
+
 /// Uniform barycentrics (b1, b2) on a triangle.
 inline Vec2 square_to_uniform_triangle(Vec2 u) {
     float t = safe_sqrt(1.f - u.x);

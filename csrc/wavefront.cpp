@@ -375,28 +375,11 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 cone_d;
         float outside = 0.f, cone_pdf = 0.f;
         if constexpr (NonMesh) {
-            const Vec3 center{light.cx, light.cy, light.cz};
-            Vec3 dc = center - p;
+            Vec3 dc = Vec3{light.cx, light.cy, light.cz} - p;
             float dc2 = squared_norm(dc);
             outside = dc2 > light.outside_radius2 ? 1.f : 0.f;
-            float inv_dc = 1.f / std::sqrt(dc2);
-            float sin_max = light.radius * inv_dc, sin_max2 = sin_max * sin_max;
-            float inv_sin_max = 1.f / sin_max, cos_max = safe_sqrt(1.f - sin_max2);
-            float wide = sin_max2 > 0.00068523f ? 1.f : 0.f;
-            float t = (cos_max - 1.f) * u.x + 1.f;
-            float sin2 = wide != 0.f ? 1.f - t * t : sin_max2 * u.x;
-            float cos = safe_sqrt(1.f - sin2);
-            float cos_alpha = sin2 * inv_sin_max + cos * safe_sqrt(1.f - sin2 * inv_sin_max * inv_sin_max);
-            float sin_alpha = safe_sqrt(1.f - cos_alpha * cos_alpha);
-            Vec2 cs = warp::cossin_2pi(u.y);
-            // Frame(axis).to_world, written out (see the shading frame below).
-            Vec3 axis = dc * -inv_dc;
-            float sign = std::copysign(1.f, axis.z);
-            float fa = -1.f / (sign + axis.z), fb = axis.x * axis.y * fa;
-            Vec3 as{1.f + sign * axis.x * axis.x * fa, sign * fb, -sign * axis.x};
-            Vec3 at{fb, sign + axis.y * axis.y * fa, -axis.y};
-            cone_d = as * (cs.x * sin_alpha) + at * (cs.y * sin_alpha) + axis * cos_alpha;
-            cone_pdf = wide != 0.f ? warp::square_to_uniform_cone_pdf(cos_max) : 1.f / (Pi * sin_max2);
+            warp::SphereConeSample cone = warp::sample_sphere_cone(dc, dc2, light.radius, u);
+            cone_d = cone.n, cone_pdf = cone.pdf;
         }
         const int c = 9 * index;  // the light's CDF in light_cdf
         uint32_t local = 0;

@@ -22,10 +22,10 @@
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
 // kind, as path_settings() makes it) with the `independent` sampler, when every emitter is such
-// a sphere or mesh or the `constant` environment and some BSDF is one of those;
-// other scenes, and the autodiff number types, take path_li. render_bwd also traces its paths with it, for gradients of
-// the inputs of lanes linear in them, of emitters' radiance and of GGX conductors' roughness
-// (WavefrontVertex).
+// a sphere or mesh or the `constant` environment and some BSDF is one of those; other
+// scenes, and the autodiff number types, take path_li. render_bwd also traces its paths with
+// it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX
+// conductors' roughness (WavefrontVertex).
 #pragma once
 
 #include <optional>
