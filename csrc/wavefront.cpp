@@ -55,6 +55,38 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     }
     if (ws.tables.empty()) ws.tables.assign(RoughPlasticTables::Resolution, 0.f);  // (gathered from in any case)
     if (!any_lanes) return std::nullopt;
+    // The shade stage's constant lookups: per material whether its inputs are constants and
+    // their values (read without the parameter log: the quick lookups run in renders
+    // without one), and per primitive its material where it does not emit.
+    std::vector<int> quick(scene.bsdfs.size(), 0);
+    for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
+        using L = WavefrontScene::Lane;
+        const BSDF &b = scene.bsdfs[i];
+        const L lane = L(ws.materials[i].lane);
+        const bool glass = lane == L::Glass, two = glass || lane == L::RoughPlastic;
+        const TextureRef &a = lane == L::Diffuse || lane == L::RoughPlastic ? b.reflectance : b.specular_reflectance;
+        const TextureRef &t = glass ? b.specular_transmittance : b.specular_reflectance;
+        auto constant = [](const TextureRef &r) { return r.texture < 0 && r.attribute < 0 && r.param >= 0; };
+        quick[i] = lane != L::Aside && constant(a) && (!two || constant(t));
+        auto value = [&](const TextureRef &r) {
+            return Params<RGB<float>>::value_of(ctx.params.data[size_t(r.param)], ctx.params.numel[size_t(r.param)]);
+        };
+        WavefrontScene::Material &m = ws.materials[i];
+        if (quick[i]) {
+            RGB<float> va = value(a);
+            m.ar = va[0], m.ag = va[1], m.ab = va[2];
+        }
+        if (quick[i] && two) {
+            RGB<float> vt = value(t);
+            m.tr = vt[0], m.tg = vt[1], m.tb = vt[2];
+        }
+    }
+    const Geometry &geometry = scene.geometry;
+    for (uint32_t p = 0; p < geometry.primitive_count(); ++p) {
+        const Shape &shape = geometry.shapes[geometry.shape_of(p)];
+        ws.prim_material.push_back(shape.bsdf);
+        ws.prim_quick.push_back(shape.emitter < 0 && quick[size_t(shape.bsdf)]);
+    }
     for (const Triangle &tri : scene.geometry.triangles) {
         using F = WavefrontScene::ShapeFlag;
         const Shape &shape = scene.geometry.shapes[tri.shape];
@@ -733,6 +765,29 @@ InteractionStage interaction_stage_for(const WavefrontScene &ws) {
     }, ws.any_normals, ws.any_uv, ws.any_spheres);
 }
 
+/// The shade stage for the lanes whose vertex needs only constant lookups
+/// (WavefrontScene::prim_quick): shaded by the vector stage (shade 1) with the inputs of
+/// its material; the other lanes get shade 0, for the shade stage's own code.
+void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws) {
+    const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const uint32_t n_prims = uint32_t(ws.prim_material.size());
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        // (An escaped ray's ~0 clamped, and both loaded unconditionally: GCC turns a select of
+        // indices into one of addresses, and a conditional load into a masked gather, which it
+        // does not emit for AVX2.)
+        const int p = int(std::min(b.prim[k], n_prims - 1));
+        const int m = material[p], q = quick[p];
+        b.mat[k] = m;
+        b.shade[k] = b.prim[k] < n_prims && b.done[k] != 0 ? q : 0;
+        b.record_rough[k] = b.record_reflect[k] = b.record_refract[k] = -1;
+        const WavefrontScene::Material &mat = mats[m];
+        b.ar[k] = mat.ar, b.ag[k] = mat.ag, b.ab[k] = mat.ab;
+        b.tr[k] = mat.tr, b.tg[k] = mat.tg, b.tb[k] = mat.tb;
+    }
+}
+
 /// Lane k's surface interaction, from its columns.
 SurfaceInteraction load_interaction(const Batch &b, int k, const Geometry &g) {
     SurfaceInteraction si;
@@ -863,7 +918,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // (path_li's code), and look up the diffuse reflectances; paths whose ray escaped end
         // here, and vertices of other BSDFs are shaded with path_li's own code.
         int n_side = 0;
+        // (Without a parameter log, the vertices needing only constants are set up in lanes.)
+        const bool quick = log == nullptr;
+        if (quick) quick_shade_stage(b, n, ws);
         for (int k = 0; k < n; ++k) {
+            if (quick && b.shade[k]) continue;
             b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {

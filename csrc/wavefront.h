@@ -3,9 +3,10 @@
 // the batch, its live paths kept packed at the front of structure-of-arrays columns:
 //   trace       one path at a time: the ray cast (the BVH's closest hit);
 //   interaction in SIMD lanes: the surface interaction of the triangles hit;
-//   shade       one path at a time: the interaction of other shapes hit, the emission the
-//               ray found (the integrator's own code), a texture's reflectance, and the
-//               vertices whose BSDF the vector stage does not shade (path_vertex());
+//   shade       in SIMD lanes for the vertices needing only constant inputs, else one path
+//               at a time: the interaction of other shapes hit, the emission the ray found
+//               (the integrator's own code), a texture's reflectance, and the vertices whose
+//               BSDF the vector stage does not shade (path_vertex());
 //   vertex      in SIMD lanes, for the other vertices: an emitter sample, the BSDF towards
 //               it with its MIS weight, the BSDF sample, Russian roulette and the next ray;
 //   shadow      one path at a time: the shadow rays, adding the emission they see;
@@ -55,6 +56,9 @@ struct WavefrontScene {
         /// The lane as flags (1 or 0) for the vector stage, which gathers them: GCC turns
         /// comparisons of `lane` with several values into branches it does not vectorise.
         float diffuse, mirror, rough, plastic;
+        /// Its inputs where they are constants (see prim_quick): the reflectance a and the
+        /// second input t of the shade stage.
+        float ar = 0.f, ag = 0.f, ab = 0.f, tr = 0.f, tg = 0.f, tb = 0.f;
     };
     struct Light {
         Color3f radiance;
@@ -70,6 +74,10 @@ struct WavefrontScene {
         float radius = 1.f, outside_radius2 = 1.f, sign = 1.f;
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
+    /// Per primitive (triangles, then Geometry::analytic): its material, and whether the shade
+    /// stage's work for it is a constant lookup (1: a BSDF of the vector stage whose inputs are
+    /// constants, Material::a and t, on a shape that does not emit; else 0).
+    std::vector<int> prim_material, prim_quick;
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
     bool any_rough = false;           ///< whether some are rough
     std::vector<float> tables;        ///< roughplastic tables (RoughPlasticTables), 64 per BSDF
