@@ -555,6 +555,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
                 if (reads_watched(scene, *r, watched)) wavefront.reset();
         }
+        if (wavefront) exclude_watched_inputs(*wavefront, scene, watched.data());
     }
     std::atomic<int> next_worker{0};
     std::atomic<uint64_t> rays{0}, nonfinite{0}, lane_paths{0}, tape_paths{0};

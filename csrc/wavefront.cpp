@@ -6,6 +6,35 @@
 
 namespace rbpt {
 
+namespace {
+
+/// The inputs the shade stage looks up for a vertex of `lane` (see trace_wavefront): a
+/// reflectance a, and a second input t or none.
+struct ShadeInputs {
+    const TextureRef *a, *t;
+};
+ShadeInputs shade_inputs(const BSDF &b, WavefrontScene::Lane lane) {
+    using L = WavefrontScene::Lane;
+    const bool base = lane == L::Diffuse || lane == L::RoughPlastic;
+    const TextureRef *t = lane == L::Glass ? &b.specular_transmittance
+                        : lane == L::RoughPlastic ? &b.specular_reflectance : nullptr;
+    return {base ? &b.reflectance : &b.specular_reflectance, t};
+}
+
+}  // namespace
+
+void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *watched) {
+    std::vector<char> excluded(scene.bsdfs.size(), 0);
+    for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
+        const ShadeInputs in = shade_inputs(scene.bsdfs[i], WavefrontScene::Lane(ws.materials[i].lane));
+        for (const TextureRef *r : {in.a, in.t})
+            if (r && r->param >= 0 && watched[size_t(r->param)]) excluded[i] = 1;
+    }
+    for (size_t p = 0; p < ws.prim_quick.size(); ++p)
+        if (excluded[size_t(ws.prim_material[p])]) ws.prim_quick[p] = 0;
+    ws.quick_watched = watched;
+}
+
 std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &ctx,
                                               const IntegratorSettings &cfg, const Camera &camera) {
 #ifndef __AVX2__
@@ -60,24 +89,19 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     // without one), and per primitive its material where it does not emit.
     std::vector<int> quick(scene.bsdfs.size(), 0);
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
-        using L = WavefrontScene::Lane;
-        const BSDF &b = scene.bsdfs[i];
-        const L lane = L(ws.materials[i].lane);
-        const bool glass = lane == L::Glass, two = glass || lane == L::RoughPlastic;
-        const TextureRef &a = lane == L::Diffuse || lane == L::RoughPlastic ? b.reflectance : b.specular_reflectance;
-        const TextureRef &t = glass ? b.specular_transmittance : b.specular_reflectance;
-        auto constant = [](const TextureRef &r) { return r.texture < 0 && r.attribute < 0 && r.param >= 0; };
-        quick[i] = lane != L::Aside && constant(a) && (!two || constant(t));
-        auto value = [&](const TextureRef &r) {
-            return Params<RGB<float>>::value_of(ctx.params.data[size_t(r.param)], ctx.params.numel[size_t(r.param)]);
+        const ShadeInputs in = shade_inputs(scene.bsdfs[i], WavefrontScene::Lane(ws.materials[i].lane));
+        auto constant = [](const TextureRef *r) { return !r || (r->texture < 0 && r->attribute < 0 && r->param >= 0); };
+        quick[i] = ws.materials[i].lane != WavefrontScene::Aside && constant(in.a) && constant(in.t);
+        auto value = [&](const TextureRef *r) {
+            return Params<RGB<float>>::value_of(ctx.params.data[size_t(r->param)], ctx.params.numel[size_t(r->param)]);
         };
         WavefrontScene::Material &m = ws.materials[i];
         if (quick[i]) {
-            RGB<float> va = value(a);
+            RGB<float> va = value(in.a);
             m.ar = va[0], m.ag = va[1], m.ab = va[2];
         }
-        if (quick[i] && two) {
-            RGB<float> vt = value(t);
+        if (quick[i] && in.t) {
+            RGB<float> vt = value(in.t);
             m.tr = vt[0], m.tg = vt[1], m.tb = vt[2];
         }
     }
@@ -918,8 +942,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // (path_li's code), and look up the diffuse reflectances; paths whose ray escaped end
         // here, and vertices of other BSDFs are shaded with path_li's own code.
         int n_side = 0;
-        // (Without a parameter log, the vertices needing only constants are set up in lanes.)
-        const bool quick = log == nullptr;
+        // (The vertices needing only constants are set up in lanes, in renders without a
+        // parameter log or whose log's watched inputs exclude_watched_inputs() left out.)
+        const bool quick = !log || log->watched == ws.quick_watched;
         if (quick) quick_shade_stage(b, n, ws);
         for (int k = 0; k < n; ++k) {
             if (quick && b.shade[k]) continue;

@@ -78,6 +78,9 @@ struct WavefrontScene {
     /// stage's work for it is a constant lookup (1: a BSDF of the vector stage whose inputs are
     /// constants, Material::a and t, on a shape that does not emit; else 0).
     std::vector<int> prim_material, prim_quick;
+    /// The parameters (per parameter, nonzero where marked) whose materials
+    /// exclude_watched_inputs() took out of prim_quick, for renders logging their reads.
+    const char *quick_watched = nullptr;
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
     bool any_rough = false;           ///< whether some are rough
     std::vector<float> tables;        ///< roughplastic tables (RoughPlasticTables), 64 per BSDF
@@ -109,6 +112,11 @@ struct WavefrontScene {
 /// environment variable TORCH_RBPT_WAVEFRONT=0 turns it off, for comparisons.)
 std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &ctx,
                                               const IntegratorSettings &cfg, const Camera &camera);
+
+/// Takes out of ws.prim_quick the primitives whose material's shade-stage inputs read a
+/// parameter marked in `watched` (render_bwd keeps their reads), so that the other vertices
+/// are set up in lanes in renders logging the reads of those parameters.
+void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *watched);
 
 /// One sample to trace: its pixel, the pixel's seeds and its index among the pixel's samples.
 struct WavefrontSample {
