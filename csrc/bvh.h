@@ -80,7 +80,7 @@ public:
     /// keep a hit the traversal does not find: another hit a rounding apart (two surfaces in
     /// one plane, in different leaves), or one a rounding before the interval's end (test_bvh
     /// test05: 137 of 20000 rays grazing a coplanar decal, none of its ordinary rays).
-    /// Testing the box of each ray's hit (gathers of its leaf's box) made cbox renders 4-5%
+    /// Testing the box of each ray's hit (gathers of its leaf's box) made cbox renders 3-5%
     /// slower (session 25), so it is left so; both hits are valid to within a rounding, and
     /// the results are deterministic.
     void intersect_columns(const RayColumns &rays, int n, const HitColumns &hits) const;
