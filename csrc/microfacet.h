@@ -27,10 +27,18 @@ R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
     R a2 = alpha * alpha;
     R result;
     if (type == MicrofacetType::Beckmann) {
-        // Beyond e^-150, D is below the cut-off below for any alpha above 1e-10 (and exp
-        // would take libm's slow underflow path).
-        if (-(xy2 / cos2) / detach_real(a2) < -150.f) return R(0.f);
-        result = exp(-(xy2 / cos2) / a2) / (Pi * a2 * (cos2 * cos2));
+        if constexpr (std::is_same_v<R, float>) {
+            // Float renders: exp_poly, as the wavefront's lanes (beckmann_D); below e^-87,
+            // where it stops, D is below the cut-off but at normals within 1e-4 of grazing.
+            float e = -(xy2 / cos2) / a2;
+            if (e < -87.f) return 0.f;
+            result = exp_poly(e) / (Pi * a2 * (cos2 * cos2));
+        } else {
+            // Beyond e^-150, D is below the cut-off below for any alpha above 1e-10 (and exp
+            // would take libm's slow underflow path).
+            if (-(xy2 / cos2) / detach_real(a2) < -150.f) return R(0.f);
+            result = exp(-(xy2 / cos2) / a2) / (Pi * a2 * (cos2 * cos2));
+        }
     } else {
         R t = xy2 / a2 + cos2;
         result = 1.f / (Pi * a2 * t * t);
@@ -88,10 +96,12 @@ RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
 }
 
 /// Smith's masking function G1(v, m) for direction v and microfacet normal m.
+/// (Float renders take Beckmann's from the polynomials, as the wavefront's lanes do.)
 template <typename R>
 R smith_G1(MicrofacetType type, const R &alpha, const Vec3 &v, const Vec3 &m) {
-    return type == MicrofacetType::Beckmann ? smith_G1<MicrofacetType::Beckmann>(alpha, v, m)
-                                            : smith_G1<MicrofacetType::GGX>(alpha, v, m);
+    return type == MicrofacetType::Beckmann
+               ? smith_G1<MicrofacetType::Beckmann, std::is_same_v<R, float>>(alpha, v, m)
+               : smith_G1<MicrofacetType::GGX>(alpha, v, m);
 }
 
 /// Density of sample_visible_normal(): G1(wi, m) |wi.m| D(m) / cos(wi).

@@ -547,7 +547,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
             const BSDF &b = scene.bsdfs[i];
             const auto lane = WavefrontScene::Lane(wavefront->materials[i].lane);
-            if (b.alpha >= 0 && watched[size_t(b.alpha)] && lane != WavefrontScene::RoughMirror) {
+            const bool ggx_conductor = lane == WavefrontScene::RoughMirror && wavefront->materials[i].beckmann == 0.f;
+            if (b.alpha >= 0 && watched[size_t(b.alpha)] && !ggx_conductor) {
                 wavefront.reset();
                 break;
             }

@@ -56,14 +56,14 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         using L = WavefrontScene::Lane;
         const BSDF &b = scene.bsdfs[i];
         const BSDFState &state = ctx.bsdf_state[i];
-        // Rough BSDFs in lanes: GGX (Beckmann's visible normals take a Newton solve), and
-        // no tables' derivatives (float renders have none).
-        bool ggx = b.distribution == MicrofacetType::GGX;
+        // Rough BSDFs in lanes, GGX and Beckmann (whose visible normals, a Newton solve, are
+        // sampled before the vector stage), and no tables' derivatives (float renders have
+        // none).
         L lane = b.type == BSDFType::Diffuse ? L::Diffuse
                : b.type == BSDFType::Conductor ? L::Mirror
                : b.type == BSDFType::Dielectric ? L::Glass
-               : b.type == BSDFType::RoughConductor && ggx ? L::RoughMirror
-               : b.type == BSDFType::RoughPlastic && ggx && state.tables && !state.dtables ? L::RoughPlastic
+               : b.type == BSDFType::RoughConductor ? L::RoughMirror
+               : b.type == BSDFType::RoughPlastic && state.tables && !state.dtables ? L::RoughPlastic
                : L::Aside;
         any_lanes = any_lanes || lane != L::Aside;
         ws.any_delta = ws.any_delta || lane == L::Mirror || lane == L::Glass;
@@ -72,7 +72,11 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                                    lane == L::Diffuse ? 1.f : 0.f, lane == L::Mirror ? 1.f : 0.f,
                                    lane == L::RoughMirror || lane == L::RoughPlastic ? 1.f : 0.f,
                                    lane == L::RoughPlastic ? 1.f : 0.f};
-        if (lane == L::RoughMirror || lane == L::RoughPlastic) m.alpha = float(ctx.params.data[b.alpha][0]);
+        if (lane == L::RoughMirror || lane == L::RoughPlastic) {
+            m.alpha = float(ctx.params.data[b.alpha][0]);
+            m.beckmann = b.distribution == MicrofacetType::Beckmann ? 1.f : 0.f;
+            ws.any_beckmann = ws.any_beckmann || m.beckmann != 0.f;
+        }
         if (lane == L::RoughPlastic) {
             m.specular_sampling_weight = state.specular_sampling_weight;
             m.internal_reflectance = state.tables->internal_reflectance;
@@ -83,6 +87,26 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.materials.push_back(m);
     }
     if (ws.tables.empty()) ws.tables.assign(RoughPlasticTables::Resolution, 0.f);  // (gathered from in any case)
+    // Beckmann's lanes make the vertex stage too large for GCC to vectorise where the scene
+    // has several emitters, one of them without a mesh, and mirrors or dielectrics: there they
+    // are shaded aside (vertex_stage_for has no such instance).
+    bool non_mesh = false;
+    for (const Emitter &e : scene.emitters)
+        non_mesh = non_mesh || e.type == EmitterType::Constant ||
+                   (e.type == EmitterType::Area && scene.geometry.shapes[e.shape].kind == ShapeKind::Sphere);
+    if (ws.any_beckmann && scene.emitters.size() != 1 && ws.any_delta && non_mesh) {
+        ws.any_beckmann = false;
+        ws.any_rough = false;
+        any_lanes = false;
+        for (WavefrontScene::Material &m : ws.materials) {
+            if (m.beckmann != 0.f) {
+                m.lane = WavefrontScene::Aside;
+                m.diffuse = m.mirror = m.rough = m.plastic = m.beckmann = 0.f;
+            }
+            ws.any_rough = ws.any_rough || m.rough != 0.f;
+            any_lanes = any_lanes || m.lane != WavefrontScene::Aside;
+        }
+    }
     if (!any_lanes) return std::nullopt;
     // The shade stage's constant lookups: per material whether its inputs are constants and
     // their values (read without the parameter log: the quick lookups run in renders
@@ -145,6 +169,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     for (const Emitter &e : scene.emitters) {
         WavefrontScene::Light light;
         light.radiance = ctx.params.spectrum(e.radiance);
+        ws.radiance.insert(ws.radiance.end(), {light.radiance.v[0], light.radiance.v[1], light.radiance.v[2]});
         light.radiance_param = e.radiance;
         if (e.type == EmitterType::Constant) {
             ws.environment = true;
@@ -224,6 +249,12 @@ struct Batch {
     // The rough BSDFs' directions, in the frame the vertex stage evaluates them in (twosided's
     // flip applied): towards the emitter sample, and the BSDF sample.
     float nwx[B], nwy[B], nwz[B], swx[B], swy[B], swz[B];
+    // A Beckmann lane's visible normal for its BSDF sample, and the microfacet terms
+    // towards the sample (beckmann_stage).
+    float bmx[B], bmy[B], bmz[B], bD[B], bgi[B], bgo[B];
+    // Its emitter sample's weight and density, the throughput before the vertex, and whether
+    // the sample stands before the BSDF's test (beckmann_emitter_stage).
+    float espdf[B], obr[B], obg[B], obb[B], sampled0[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
 };
@@ -319,6 +350,29 @@ RBPT_INLINE Vec3 ggx_visible_normal(float alpha, const Vec3 &wi, Vec2 u) {
     return normalize(Vec3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
 }
 
+/// microfacet_D for Beckmann (float renders': exp_poly).
+RBPT_INLINE float beckmann_D(float alpha, const Vec3 &m) {
+    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
+    float a2 = alpha * alpha;
+    float e = -(xy2 / cos2) / a2;
+    float result = exp_poly(e) / (Pi * a2 * (cos2 * cos2));
+    result = e < -87.f ? 0.f : result;
+    result = result * m.z > 1e-20f ? result : 0.f;
+    return m.z <= 0.f ? 0.f : result;
+}
+
+/// smith_G1 for Beckmann (float renders': erfc_poly and exp_poly).
+RBPT_INLINE float beckmann_G1(float alpha, const Vec3 &v, const Vec3 &m) {
+    float xy2 = v.x * v.x + v.y * v.y;
+    float tan2 = xy2 / (v.z * v.z);
+    float a = 1.f / (alpha * std::sqrt(tan2));
+    float lambda = erfc_poly(a) * -0.5f + exp_poly(-a * a) / (a * (2.f * 1.7724538509055159f));
+    float g = 1.f / (1.f + lambda);
+    g = a > 9.f ? 1.f : g;
+    g = xy2 == 0.f ? 1.f : g;
+    return dot(v, m) * v.z <= 0.f ? 0.f : g;
+}
+
 /// RoughPlasticTables::transmittance of the table at `table`.
 RBPT_INLINE float transmittance(const float *tables, int table, float cos_theta) {
     constexpr int N = RoughPlasticTables::Resolution;
@@ -341,13 +395,40 @@ RBPT_INLINE float specular_probability(const WavefrontScene::Material &m, float 
 struct RoughEval {
     float r, g, b, pdf;
 };
-RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, const float *tables,
-                                 const Vec3 &wi, const Vec3 &wo, const float a[3], const float s[3]) {
+/// A Beckmann lane's microfacet terms towards wo: D(h) and G1 of wi and of wo.
+struct MicrofacetTerms {
+    float D, g_i, g;
+};
+RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Vec3 &wo) {
+    Vec3 h = normalize(wi + wo);
+    return {beckmann_D(alpha, h), beckmann_G1(alpha, wi, h), beckmann_G1(alpha, wo, h)};
+}
+
+/// Beckmann: 0, none (GGX's terms); 1, Beckmann's terms where beckmann_flag is 1, computed
+/// here; 2, taken from `stored` there (beckmann_stage computed them: GCC does not vectorise the
+/// vertex stage with both evaluations' terms in it); 3, Beckmann's only.
+template <int Beckmann>
+RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, float beckmann_flag,
+                                 const MicrofacetTerms &stored, const float *tables, const Vec3 &wi,
+                                 const Vec3 &wo, const float a[3], const float s[3]) {
     float up = wi.z > 0.f ? 1.f : 0.f;
     up = wo.z > 0.f ? up : 0.f;
     Vec3 h = normalize(wi + wo);
-    float l = ggx_D(m.alpha, h) * ggx_G1(m.alpha, wi, h) / (4.f * wi.z);
-    float g = ggx_G1(m.alpha, wo, h);
+    float D, g_i, g;
+    if constexpr (Beckmann == 3) {
+        const MicrofacetTerms t = beckmann_terms(m.alpha, wi, wo);
+        D = t.D, g_i = t.g_i, g = t.g;
+    } else {
+        D = ggx_D(m.alpha, h), g_i = ggx_G1(m.alpha, wi, h), g = ggx_G1(m.alpha, wo, h);
+    }
+    if constexpr (Beckmann == 1 || Beckmann == 2) {
+        const bool beckmann = beckmann_flag != 0.f;
+        const MicrofacetTerms t = Beckmann == 1 ? beckmann_terms(m.alpha, wi, wo) : stored;
+        D = beckmann ? t.D : D;
+        g_i = beckmann ? t.g_i : g_i;
+        g = beckmann ? t.g : g;
+    }
+    float l = D * g_i / (4.f * wi.z);
     // The conductor.
     float lg = l * g;
     float facing = dot(wi, h) > 0.f ? 1.f : 0.f;
@@ -379,10 +460,10 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
-/// dielectrics (which sample no emitter), whether some are rough; NonMesh: whether some
-/// emitters have no mesh (the `constant` environment, spheres). The code of the BSDFs and
-/// emitters a scene does not have is left out.
-template <bool OneLight, bool Delta, bool Rough, bool NonMesh>
+/// dielectrics (which sample no emitter), whether some are rough (0: none, 1: GGX only, 2:
+/// Beckmann too); NonMesh: whether some emitters have no mesh (the `constant` environment,
+/// spheres). The code of the BSDFs and emitters a scene does not have is left out.
+template <bool OneLight, bool Delta, int Rough, bool NonMesh>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -407,6 +488,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const float diffuse = Delta || Rough ? m.diffuse : 1.f;
         const float mirror = Delta ? m.mirror : 0.f;
         const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
+        const float beckmann = Rough == 2 ? m.beckmann : 0.f;
         const float smooth = shade * (diffuse + rough);
         const bool draw_emitter = !Delta || diffuse + rough != 0.f;
         const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
@@ -499,13 +581,18 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
                   up != 0.f ? a[2] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
         if constexpr (Rough) {
-            RoughEval e = rough_eval(m, plastic, tables, wi, wo, a, s);
+            RoughEval e = rough_eval<0>(m, plastic, beckmann, MicrofacetTerms{}, tables, wi, wo, a, s);
             f.v[0] = rough != 0.f ? e.r : f.v[0], f.v[1] = rough != 0.f ? e.g : f.v[1];
             f.v[2] = rough != 0.f ? e.b : f.v[2];
             f_pdf = rough != 0.f ? e.pdf : f_pdf;
         }
         // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
         // of f, which was selected, would again become a boolean select).
+        if constexpr (Rough == 2) {
+            // (What beckmann_emitter_stage needs to redo this for Beckmann lanes.)
+            b.espdf[k] = es_pdf;
+            b.obr[k] = b.br[k], b.obg[k] = b.bg[k], b.obb[k] = b.bb[k], b.sampled0[k] = sampled;
+        }
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf);
@@ -560,12 +647,16 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float wr = refract != 0.f ? s[0] * t2 : a[0], wg = refract != 0.f ? s[1] * t2 : a[1];
         float wb = refract != 0.f ? s[2] * t2 : a[2];
         if constexpr (Rough) {
-            // Rough: the reflection about a visible GGX normal (roughplastic: where u1 picks
-            // the specular lobe, else the cosine-weighted direction), weighted by value / pdf.
-            Vec3 specular = reflect(wi, ggx_visible_normal(m.alpha, wi, u2));
+            // Rough: the reflection about a visible normal (GGX's, or Beckmann's from
+            // beckmann_stage; roughplastic: where u1 picks the specular lobe, else the
+            // cosine-weighted direction), weighted by value / pdf.
+            Vec3 normal = ggx_visible_normal(m.alpha, wi, u2);
+            if constexpr (Rough == 2) normal = select(beckmann != 0.f, Vec3{b.bmx[k], b.bmy[k], b.bmz[k]}, normal);
+            Vec3 specular = reflect(wi, normal);
             float pick_base = u1 < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : plastic;
             Vec3 rwo = select(pick_base != 0.f, cos_wo, specular);
-            RoughEval e = rough_eval(m, plastic, tables, wi, rwo, a, s);
+            RoughEval e = rough_eval<Rough == 2 ? 2 : 0>(m, plastic, beckmann, MicrofacetTerms{b.bD[k], b.bgi[k], b.bgo[k]},
+                                                       tables, wi, rwo, a, s);
             float rpdf = wi.z > 0.f ? e.pdf : 0.f;
             bwo = select(rough != 0.f, rwo, bwo);
             bpdf = rough != 0.f ? rpdf : bpdf;
@@ -617,10 +708,101 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
-    return with_flags([](auto one_light, auto delta, auto rough, auto env) -> VertexStage {
-        return vertex_stage<decltype(one_light)::value, decltype(delta)::value, decltype(rough)::value,
-                            decltype(env)::value>;
-    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment || ws.any_sphere_lights);
+    const int rough = ws.any_beckmann ? 2 : ws.any_rough ? 1 : 0;
+    return with_flags([rough](auto one_light, auto delta, auto env) -> VertexStage {
+        constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value, E = decltype(env)::value;
+        // (No Beckmann instance with several lights, one without a mesh, and delta BSDFs:
+        // wavefront_scene shades Beckmann aside there.)
+        if constexpr (!O && D && E) return rough ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
+        else return rough == 2 ? vertex_stage<O, D, 2, E> : rough == 1 ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
+    }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights);
+}
+
+/// The Beckmann lanes' emitter samples, after the vector stage evaluated them with GGX's
+/// terms: the BSDF towards each with Beckmann's (rough_eval, as the vector stage would), its
+/// MIS weight and contribution, for the `count` lanes listed in `lanes` (beckmann_stage's).
+/// (A loop of its own: with these terms in it GCC does not vectorise the vertex stage.)
+void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const WavefrontScene &ws) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float *radiance = ws.radiance.data(), *tables = ws.tables.data();
+    // The lanes' inputs, packed (one lane at a time: GCC does not vectorise gathers whose
+    // index is itself gathered), then evaluated in SIMD lanes.
+    alignas(64) int mat[B], light[B];
+    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], nwx[B], nwy[B], nwz[B];
+    alignas(64) float espdf[B], sampled0[B], obr[B], obg[B], obb[B];
+    for (int j = 0; j < count; ++j) {
+        const int k = lanes[j];
+        mat[j] = b.mat[k], light[j] = b.light[k];
+        ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
+        wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
+        nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
+        espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k], obr[j] = b.obr[k], obg[j] = b.obg[k], obb[j] = b.obb[k];
+    }
+    alignas(64) float cr[B], cg[B], cb[B], sampled[B];
+#pragma GCC ivdep
+    for (int j = 0; j < count; ++j) {
+        const WavefrontScene::Material &m = mats[mat[j]];
+        const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
+        Vec3 wi{wix[j], wiy[j], wiz[j]};
+        float side = wi.z < 0.f ? -1.f : 1.f;
+        side = m.twosided != 0 ? side : 1.f;
+        wi.z = wi.z * side;
+        const Vec3 wo{nwx[j], nwy[j], nwz[j]};
+        RoughEval e = rough_eval<3>(m, m.plastic, 1.f, MicrofacetTerms{}, tables, wi, wo, a, s);
+        float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
+        sampled[j] = f_sum != 0.f ? sampled0[j] : 0.f;
+        // (The emitter sample's weight, as the vector stage computed it.)
+        const int l = 3 * light[j];
+        const float inv_pdf = 1.f / espdf[j];
+        const float ew[3] = {radiance[l] * inv_pdf, radiance[l + 1] * inv_pdf, radiance[l + 2] * inv_pdf};
+        float w = mis_weight(espdf[j], e.pdf);
+        cr[j] = obr[j] * e.r * ew[0] * w;
+        cg[j] = obg[j] * e.g * ew[1] * w;
+        cb[j] = obb[j] * e.b * ew[2] * w;
+    }
+    for (int j = 0; j < count; ++j) {
+        const int k = lanes[j];
+        b.cr[k] = cr[j], b.cg[k] = cg[j], b.cb[k] = cb[j];
+        b.shadow[k] = sampled[j] != 0.f ? 1 : 0;
+    }
+}
+
+/// The visible normals of the Beckmann lanes' BSDF samples (and their list, returning
+/// their number), one lane at a time with
+/// VisibleNormalSampler (a Newton solve), before the vector stage: from the random numbers
+/// the vector stage will draw for the sample (after the emitter sample's two), in the frame
+/// it samples in (twosided's flip), where the sample takes one (a conductor's; a
+/// roughplastic's where u1 picks the specular lobe).
+int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
+    int count = 0;
+    for (int k = 0; k < n; ++k) {
+        const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
+        b.bmx[k] = 0.f, b.bmy[k] = 0.f, b.bmz[k] = 1.f;
+        b.bD[k] = b.bgi[k] = b.bgo[k] = 0.f;
+        if (!b.shade[k] || m.beckmann == 0.f) continue;
+        lanes[count++] = k;
+        Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
+        if (m.twosided != 0 && wi.z < 0.f) wi.z = wi.z * -1.f;
+        if (!(wi.z > 0.f)) continue;
+        uint64_t state = b.state[k];
+        auto next = [&] { return uniform_float(pcg32_next(state, b.inc[k])); };
+        next(), next();  // the emitter sample's
+        const float u1 = next();
+        Vec2 u2;
+        u2.x = next();
+        u2.y = next();
+        // (The vector stage's choice of direction, and its terms towards it.)
+        const bool base = m.plastic != 0.f && !(u1 < specular_probability(m, transmittance(ws.tables.data(), m.table, wi.z)));
+        Vec3 wo = warp::square_to_cosine_hemisphere(u2);
+        if (!base) {
+            const Vec3 normal = sample_visible_normal(MicrofacetType::Beckmann, m.alpha, wi, u2);
+            b.bmx[k] = normal.x, b.bmy[k] = normal.y, b.bmz[k] = normal.z;
+            wo = reflect(wi, normal);
+        }
+        const MicrofacetTerms t = beckmann_terms(m.alpha, wi, wo);
+        b.bD[k] = t.D, b.bgi[k] = t.g_i, b.bgo[k] = t.g;
+    }
+    return count;
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
@@ -872,7 +1054,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
-    static thread_local int side_lane[B];
+    static thread_local int side_lane[B], beckmann_lane[B];
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
@@ -1034,8 +1216,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.mat[k] = shape.bsdf;
             b.shade[k] = 1;
         }
-        // Shade the other vertices in lanes; then the vertices shaded aside return.
+        // Shade the other vertices in lanes (Beckmann's visible normals first); then the
+        // vertices shaded aside return.
+        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
         vertex_stage_for(ws)(b, n, ws, cfg, depth);
+        if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
             for (int k = 0; k < n; ++k) {

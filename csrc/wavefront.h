@@ -16,8 +16,9 @@
 // It computes what path_li computes, operation for operation, in the same order (with
 // -ffp-contract=off a vectorised loop performs the same IEEE operations as a scalar one), so
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
-// vector stage shades diffuse BSDFs (`twosided` or not), the GGX roughconductor and
-// roughplastic, with their emitter samples on area emitters on spheres and on meshes of at
+// vector stage shades diffuse BSDFs (`twosided` or not), the roughconductor and roughplastic
+// (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
+// vector stage, from the same random numbers), with their emitter samples on area emitters on spheres and on meshes of at
 // most 8 triangles, and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
@@ -56,6 +57,9 @@ struct WavefrontScene {
         /// The lane as flags (1 or 0) for the vector stage, which gathers them: GCC turns
         /// comparisons of `lane` with several values into branches it does not vectorise.
         float diffuse, mirror, rough, plastic;
+        /// 1: a rough lane of the Beckmann distribution (its visible normal sampled in
+        /// scalar code before the vector stage), 0: GGX.
+        float beckmann = 0.f;
         /// Its inputs where they are constants (see prim_quick): the reflectance a and the
         /// second input t of the shade stage.
         float ar = 0.f, ag = 0.f, ab = 0.f, tr = 0.f, tg = 0.f, tb = 0.f;
@@ -83,6 +87,7 @@ struct WavefrontScene {
     const char *quick_watched = nullptr;
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
     bool any_rough = false;           ///< whether some are rough
+    bool any_beckmann = false;        ///< whether some rough ones are Beckmann's
     std::vector<float> tables;        ///< roughplastic tables (RoughPlasticTables), 64 per BSDF
     /// Per triangle, what its interactions read of its mesh (ShapeFlag bits).
     enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
@@ -96,6 +101,7 @@ struct WavefrontScene {
     std::vector<float> sphere_radius, sphere_sign;
     bool any_spheres = false;
     std::vector<Light> lights;        ///< per Scene::emitters
+    std::vector<float> radiance;      ///< Light::radiance, 3 per light (for gathers)
     bool environment = false;         ///< whether one is the `constant` environment
     bool any_sphere_lights = false;   ///< whether some are spheres
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers

@@ -180,14 +180,13 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
                                    atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
 
 
-@pytest.mark.parametrize("key", ["beckmann.bsdf.specular_reflectance.value", "panel.emitter.radiance.value",
-                                 "beckmann.bsdf.alpha.value", "shiny.bsdf.alpha",
+@pytest.mark.parametrize("key", ["panel.emitter.radiance.value", "beckmann.bsdf.alpha.value", "shiny.bsdf.alpha",
                                  "shiny.bsdf.diffuse_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
-    # Roughness other than a GGX conductor's (a Beckmann conductor's, shaded aside, and
-    # roughplastic's) and the inputs of BSDFs other than diffuse ones, mirrors and GGX conductors
-    # (even roughplastic's diffuse reflectance, and a Beckmann conductor's)
-    # enter the path otherwise than as one factor of its throughput; a radiance with a zero channel
+    # Roughness other than a GGX conductor's (a Beckmann conductor's, whose visible normals
+    # are sampled one path at a time, and roughplastic's) and the inputs of BSDFs other than
+    # diffuse ones, mirrors and conductors (even roughplastic's diffuse reflectance) enter the
+    # path otherwise than as one factor of its throughput; a radiance with a zero channel
     # is skipped by the wavefront's emitter samples: the whole backward pass takes the tape,
     # whatever else is differentiated.
     scene = room(tmp_path, {"max_depth": 5},
@@ -263,11 +262,22 @@ def test04_cornell_box_takes_the_wavefront(monkeypatch):
                "bsdf": {"type": "dielectric"}},
      "satin": {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([-0.2, 0.15, 0.5]),
                "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.4}}},
-], ids=["mirror", "glass", "textured delta", "ggx", "beckmann", "all kinds"])
+    {"rough": {"type": "rectangle", "to_world": tr.Transform.translate([0.6, 0.5, -0.5]).rotate([0, 1, 0], -40).scale(0.4),
+               "bsdf": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.05}}},
+     "plastic": {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, 0]),
+                 "bsdf": {"type": "roughplastic", "alpha": 0.01, "nonlinear": True,
+                          "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.8]}}},
+     "glass": {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.4, 0.15, 0.4]),
+               "bsdf": {"type": "dielectric"}},
+     "bulb": {"type": "sphere", "radius": 0.05, "to_world": tr.Transform.translate([0.0, 0.8, 0.3]),
+              "emitter": {"type": "area", "radiance": 20.0}}},
+], ids=["mirror", "glass", "textured delta", "ggx", "beckmann", "all kinds", "beckmann aside"])
 def test05_every_bsdf_gives_path_li_image(tmp_path, monkeypatch, extra):
-    # Mirrors, dielectrics (index-matched too, textured, twosided) and GGX rough BSDFs are
-    # shaded in lanes with the diffuse vertices; Beckmann's by path_vertex() in the shade
-    # stage. Either way the image is path_li's.
+    # Mirrors, dielectrics (index-matched too, textured, twosided) and rough BSDFs (GGX's
+    # and Beckmann's, whose visible normals are sampled one path at a time first) are shaded
+    # in lanes with the diffuse vertices; Beckmann's by path_vertex() in the shade stage
+    # where the scene has several lights, one of them a sphere, and delta BSDFs ("beckmann
+    # aside"). Either way the image is path_li's.
     scene = room(tmp_path, {"max_depth": 6}, **extra)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=4)
     assert torch.equal(wavefront, scalar)
@@ -327,14 +337,10 @@ def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkey
     assert torch.equal(wavefront, scalar)
 
 
-@pytest.mark.parametrize("change", ["only rough BSDFs", "cube light", "no triangles", "stratified",
-                                    "direct", "float64"])
+@pytest.mark.parametrize("change", ["cube light", "no triangles", "stratified", "direct", "float64"])
 def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
     d = room_dict(tmp_path)
-    if change == "only rough BSDFs":
-        for key in ("floor", "back", "side", "quad", "strip", "panel"):
-            d[key]["bsdf"] = {"type": "roughconductor"}
-    elif change == "cube light":  # 12 triangles: more than the vector stage's 8
+    if change == "cube light":  # 12 triangles: more than the vector stage's 8
         d["box"] = {"type": "cube", "to_world": tr.Transform.scale(0.1),
                     "emitter": {"type": "area", "radiance": 1.0}}
     elif change == "environment":
@@ -363,8 +369,8 @@ def test08_vector_stages_vectorise(tmp_path, march):
 
 
 def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
-    # A mirror's and a GGX conductor's specular reflectance (RGB, and a checkerboard on a
-    # twosided mirror), and a dielectric's specular reflectance and transmittance on the
+    # A mirror's and a GGX and a Beckmann conductor's specular reflectance (RGB, and a
+    # checkerboard on a twosided mirror), and a dielectric's specular reflectance and transmittance on the
     # branch its vertex sampled, are one factor of everything the path gathers after the
     # vertex, as a diffuse reflectance is: lanes, with the tape's gradients.
     scene = room(tmp_path, {"max_depth": 6},
@@ -377,6 +383,9 @@ def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
                  metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
                         "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
                                  "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}},
+                 beckmann={"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.0, 0.15, 0.5]),
+                           "bsdf": {"type": "roughconductor", "alpha": 0.2,
+                                    "specular_reflectance": {"type": "rgb", "value": [0.8, 0.9, 0.6]}}},
                  glass={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.1, 0.45, 0.6]),
                         "bsdf": {"type": "dielectric", "int_ior": 1.5,
                                  "specular_reflectance": {"type": "rgb", "value": [0.9, 0.95, 0.8]},
@@ -385,7 +394,8 @@ def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
             "glass.bsdf.specular_transmittance.color1.value",
             "floor.bsdf.reflectance.value", "mirror.bsdf.specular_reflectance.value",
             "panel_mirror.bsdf.brdf_0.specular_reflectance.color0.value",
-            "panel_mirror.bsdf.brdf_0.specular_reflectance.color1.value", "metal.bsdf.specular_reflectance.value"]
+            "panel_mirror.bsdf.brdf_0.specular_reflectance.color1.value", "metal.bsdf.specular_reflectance.value",
+            "beckmann.bsdf.specular_reflectance.value"]
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
 
 
