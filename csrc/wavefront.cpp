@@ -8,8 +8,9 @@ namespace rbpt {
 
 namespace {
 
-/// The inputs the shade stage looks up for a vertex of `lane` (see trace_wavefront): a
-/// reflectance a, and a second input t or none.
+/// The inputs the shade stage looks up for a vertex of `lane`: a (diffuse and roughplastic
+/// `reflectance`, the conductors' and the dielectric's specular reflectance) and t, or none
+/// (the dielectric's transmittance, roughplastic's specular reflectance).
 struct ShadeInputs {
     const TextureRef *a, *t;
 };
@@ -404,10 +405,11 @@ RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Ve
     return {beckmann_D(alpha, h), beckmann_G1(alpha, wi, h), beckmann_G1(alpha, wo, h)};
 }
 
-/// Beckmann: 0, none (GGX's terms); 1, Beckmann's terms where beckmann_flag is 1, computed
-/// here; 2, taken from `stored` there (beckmann_stage computed them: GCC does not vectorise the
-/// vertex stage with both evaluations' terms in it); 3, Beckmann's only.
-template <int Beckmann>
+/// Terms: GGX's (Microfacet::GGX); GGX's, or `stored` where beckmann_flag is 1
+/// (Microfacet::Stored: beckmann_stage computed them, as GCC does not vectorise the vertex
+/// stage with Beckmann's terms in it); Beckmann's (Microfacet::Beckmann).
+enum class Microfacet { GGX, Stored, Beckmann };
+template <Microfacet Terms>
 RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, float beckmann_flag,
                                  const MicrofacetTerms &stored, const float *tables, const Vec3 &wi,
                                  const Vec3 &wo, const float a[3], const float s[3]) {
@@ -415,18 +417,17 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
     up = wo.z > 0.f ? up : 0.f;
     Vec3 h = normalize(wi + wo);
     float D, g_i, g;
-    if constexpr (Beckmann == 3) {
+    if constexpr (Terms == Microfacet::Beckmann) {
         const MicrofacetTerms t = beckmann_terms(m.alpha, wi, wo);
         D = t.D, g_i = t.g_i, g = t.g;
     } else {
         D = ggx_D(m.alpha, h), g_i = ggx_G1(m.alpha, wi, h), g = ggx_G1(m.alpha, wo, h);
     }
-    if constexpr (Beckmann == 1 || Beckmann == 2) {
+    if constexpr (Terms == Microfacet::Stored) {
         const bool beckmann = beckmann_flag != 0.f;
-        const MicrofacetTerms t = Beckmann == 1 ? beckmann_terms(m.alpha, wi, wo) : stored;
-        D = beckmann ? t.D : D;
-        g_i = beckmann ? t.g_i : g_i;
-        g = beckmann ? t.g : g;
+        D = beckmann ? stored.D : D;
+        g_i = beckmann ? stored.g_i : g_i;
+        g = beckmann ? stored.g : g;
     }
     float l = D * g_i / (4.f * wi.z);
     // The conductor.
@@ -581,7 +582,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
                   up != 0.f ? a[2] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
         if constexpr (Rough) {
-            RoughEval e = rough_eval<0>(m, plastic, beckmann, MicrofacetTerms{}, tables, wi, wo, a, s);
+            RoughEval e = rough_eval<Microfacet::GGX>(m, plastic, 0.f, MicrofacetTerms{}, tables, wi, wo, a, s);
             f.v[0] = rough != 0.f ? e.r : f.v[0], f.v[1] = rough != 0.f ? e.g : f.v[1];
             f.v[2] = rough != 0.f ? e.b : f.v[2];
             f_pdf = rough != 0.f ? e.pdf : f_pdf;
@@ -655,8 +656,9 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             Vec3 specular = reflect(wi, normal);
             float pick_base = u1 < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : plastic;
             Vec3 rwo = select(pick_base != 0.f, cos_wo, specular);
-            RoughEval e = rough_eval<Rough == 2 ? 2 : 0>(m, plastic, beckmann, MicrofacetTerms{b.bD[k], b.bgi[k], b.bgo[k]},
-                                                       tables, wi, rwo, a, s);
+            constexpr Microfacet terms = Rough == 2 ? Microfacet::Stored : Microfacet::GGX;
+            RoughEval e = rough_eval<terms>(m, plastic, beckmann, MicrofacetTerms{b.bD[k], b.bgi[k], b.bgo[k]},
+                                            tables, wi, rwo, a, s);
             float rpdf = wi.z > 0.f ? e.pdf : 0.f;
             bwo = select(rough != 0.f, rwo, bwo);
             bpdf = rough != 0.f ? rpdf : bpdf;
@@ -748,7 +750,7 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         side = m.twosided != 0 ? side : 1.f;
         wi.z = wi.z * side;
         const Vec3 wo{nwx[j], nwy[j], nwz[j]};
-        RoughEval e = rough_eval<3>(m, m.plastic, 1.f, MicrofacetTerms{}, tables, wi, wo, a, s);
+        RoughEval e = rough_eval<Microfacet::Beckmann>(m, m.plastic, 1.f, MicrofacetTerms{}, tables, wi, wo, a, s);
         float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
         sampled[j] = f_sum != 0.f ? sampled0[j] : 0.f;
         // (The emitter sample's weight, as the vector stage computed it.)
@@ -767,12 +769,12 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
     }
 }
 
-/// The visible normals of the Beckmann lanes' BSDF samples (and their list, returning
-/// their number), one lane at a time with
+/// The visible normals of the Beckmann lanes' BSDF samples, one lane at a time with
 /// VisibleNormalSampler (a Newton solve), before the vector stage: from the random numbers
 /// the vector stage will draw for the sample (after the emitter sample's two), in the frame
 /// it samples in (twosided's flip), where the sample takes one (a conductor's; a
-/// roughplastic's where u1 picks the specular lobe).
+/// roughplastic's where u1 picks the specular lobe). Lists those lanes in `lanes` and
+/// returns their number.
 int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     int count = 0;
     for (int k = 0; k < n; ++k) {
@@ -1185,12 +1187,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 if (!si.valid) si = load_interaction(b, k, g);
                 return make_query(bsdf, ctx, shape.bsdf, si).texture<RGB<float>>(r);
             };
-            // (a: diffuse and roughplastic `reflectance`, the conductors' and the dielectric's
-            // specular reflectance; t: the dielectric's transmittance, roughplastic's
-            // specular reflectance)
-            bool base = lane == WavefrontScene::Diffuse || lane == WavefrontScene::RoughPlastic;
+            const ShadeInputs in = shade_inputs(bsdf, lane);
             const int reads_a = log ? log->count : 0;
-            Color3f a = lookup(base ? bsdf.reflectance : bsdf.specular_reflectance);
+            Color3f a = lookup(*in.a);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
             // (The diffuse reflectance, the mirror's and GGX conductor's specular reflectance
             // and, on the branch it samples, the dielectric's specular reflectance or
@@ -1206,9 +1205,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             };
             b.record_reflect[k] = keep(reads_a, a);
             b.record_refract[k] = -1;
-            if (glass || lane == WavefrontScene::RoughPlastic) {
+            if (in.t) {
                 const int reads_t = log ? log->count : 0;
-                Color3f t = lookup(glass ? bsdf.specular_transmittance : bsdf.specular_reflectance);
+                Color3f t = lookup(*in.t);
                 b.tr[k] = t.v[0], b.tg[k] = t.v[1], b.tb[k] = t.v[2];
                 if (glass) b.record_refract[k] = keep(reads_t, t);
             }
