@@ -363,6 +363,8 @@ void BVH::build(const Geometry &geometry) {
 
     // A small tree of triangles and spheres is also kept flat (intersect_columns()).
     flat_triangles_.clear();
+    flat_prims_.clear();
+    flat_coords_.clear();
     flat_spheres_.clear();
     bool flat = nodes_.size() == 1;
     int n_triangles = 0, n_spheres = 0;
@@ -380,11 +382,18 @@ void BVH::build(const Geometry &geometry) {
                         for (int axis = 0; axis < 3; ++axis) t.v[k][axis] = pack.tris.v[k][axis][lane];
                     t.prim = pack.prim[lane];
                     flat_triangles_.push_back(t);
+                    flat_prims_.push_back(t.prim);
                 }
                 if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
             }
         }
         if (flat_triangles_.empty()) flat_spheres_.clear();  // (flat() means some triangles)
+        // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
+        const size_t n = flat_triangles_.size();
+        flat_coords_.resize(9 * n);
+        for (size_t i = 0; i < n; ++i)
+            for (int j = 0; j < 3; ++j)
+                for (int a = 0; a < 3; ++a) flat_coords_[(3 * j + a) * n + i] = flat_triangles_[i].v[j][a];
     }
 }
 
@@ -577,25 +586,29 @@ struct BVH::FlatRays {
     const int *kx, *ky, *kz;
     const float *ox, *oy, *oz, *sx, *sy, *sz;
     float *retrace, *best_t, *best_u, *best_v;
-    uint32_t *best_prim;
+    uint32_t *best;  ///< the nearest hit's primitive (or triangle: see flat_triangles())
 };
 
 /// G triangles against rays [0, n): intersect_triangles()'s operations, lane by lane, each
 /// triangle in turn; a ray whose nearest hit ties another, or that meets an edge function
 /// exactly zero (which intersect_triangles() redoes in double), is marked for intersect().
-template <int G>
-void BVH::flat_triangles(const FlatTriangle *tris, const FlatRays &q, int n) {
+/// With Deferred, the last test, the bound on t's rounding error, is left to
+/// flat_rounding_check() (for each ray's nearest hit alone), which pays where there are many
+/// triangles, and the nearest hit's triangle is kept as its index in flat_triangles_
+/// (`first` is tris' own); otherwise as its primitive.
+template <int G, bool Deferred>
+void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &q, int n) {
     constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
     // (The columns as locals: loads through the struct's pointers do not vectorise.)
     const float *q_tmin = q.tmin, *q_tmax = q.tmax, *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz;
     const float *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
     const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
     float *q_retrace = q.retrace, *q_best_t = q.best_t, *q_best_u = q.best_u, *q_best_v = q.best_v;
-    uint32_t *q_best_prim = q.best_prim;
+    uint32_t *q_best = q.best;
     float vert[G][3][3];
-    uint32_t prims[G];
+    uint32_t ids[G];
     for (int i = 0; i < G; ++i) {
-        prims[i] = tris[i].prim;
+        ids[i] = Deferred ? first + uint32_t(i) : tris[i].prim;
         for (int j = 0; j < 3; ++j)
             for (int a = 0; a < 3; ++a) vert[i][j][a] = tris[i].v[j][a];
     }
@@ -605,7 +618,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, const FlatRays &q, int n) {
         const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
         const float tmin = q_tmin[k], tmax = q_tmax[k];
         float retrace = q_retrace[k], best_t = q_best_t[k], best_u = q_best_u[k], best_v = q_best_v[k];
-        uint32_t best_prim = q_best_prim[k];
+        uint32_t best = q_best[k];
 #pragma GCC unroll 4
         for (int i = 0; i < G; ++i) {
             const float(*v)[3] = vert[i];
@@ -619,26 +632,30 @@ void BVH::flat_triangles(const FlatTriangle *tris, const FlatRays &q, int n) {
             float Ve = x[0] * y[2] - y[0] * x[2];
             float We = x[1] * y[0] - y[1] * x[0];
             float edge = (U == 0.f) | (Ve == 0.f) | (We == 0.f) ? 1.f : 0.f;
-            float neg = (U < 0.f) | (Ve < 0.f) | (We < 0.f) ? 1.f : 0.f;
-            float pos = (U > 0.f) | (Ve > 0.f) | (We > 0.f) ? 1.f : 0.f;
+            // Inside when the edge functions do not differ in sign (where one is NaN, so is
+            // det and the hit test below fails).
+            float lo = std::min(std::min(U, Ve), We), hi = std::max(std::max(U, Ve), We);
+            float inside = (lo >= 0.f) | (hi <= 0.f) ? 1.f : 0.f;
             float det = (U + Ve) + We;
-            float inside = neg * pos == 0.f ? 1.f : 0.f;
             inside = det != 0.f ? inside : 0.f;
             float T = (U * (sz * z[0]) + Ve * (sz * z[1])) + We * (sz * z[2]);
             float inv_det = 1.f / det;
             float t = T * inv_det;
             float hit = t > tmin ? inside : 0.f;
             hit = t < tmax ? hit : 0.f;
-            float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
-            float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
-            float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
-            float delta_z = g3 * max_zt;
-            float delta_x = g5 * (max_xt + max_zt);
-            float delta_y = g5 * (max_yt + max_zt);
-            float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
-            float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
-            float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
-            hit = t > delta_t ? hit : 0.f;
+            if constexpr (!Deferred) {
+                float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
+                float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
+                float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
+                float delta_z = g3 * max_zt;
+                float delta_x = g5 * (max_xt + max_zt);
+                float delta_y = g5 * (max_yt + max_zt);
+                float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+                float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
+                float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) *
+                                std::abs(inv_det);
+                hit = t > delta_t ? hit : 0.f;
+            }
             retrace = edge != 0.f ? 1.f : retrace;
             // The nearest; a tie leaves the order to intersect()'s traversal.
             float tie = t == best_t ? hit : 0.f;
@@ -647,11 +664,64 @@ void BVH::flat_triangles(const FlatTriangle *tris, const FlatRays &q, int n) {
             best_t = better != 0.f ? t : best_t;
             best_u = better != 0.f ? Ve * inv_det : best_u;
             best_v = better != 0.f ? We * inv_det : best_v;
-            best_prim = better != 0.f ? prims[i] : best_prim;
+            best = better != 0.f ? ids[i] : best;
         }
         q_retrace[k] = retrace, q_best_t[k] = best_t, q_best_u[k] = best_u, q_best_v[k] = best_v;
-        q_best_prim[k] = best_prim;
+        q_best[k] = best;
     }
+}
+
+/// intersect_triangles()'s last test for each ray's nearest triangle hit from
+/// flat_triangles(): the hit must lie farther than the rounding error of its t (pbrt-v4's
+/// conservative bound). Testing the nearest hit alone finds what testing every hit finds:
+/// a hit that passes is the nearest of those that pass; a ray whose nearest hit fails (its
+/// origin on that triangle, within rounding) is marked for intersect(). `best` becomes the
+/// hit's primitive.
+void BVH::flat_rounding_check(const FlatRays &q, int n) const {
+    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
+    const float *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz, *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
+    const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
+    float *q_retrace = q.retrace;
+    const float *q_best_t = q.best_t;
+    uint32_t *q_best = q.best;
+    const int stride = int(flat_prims_.size());
+    const float *coords = flat_coords_.data();
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
+        const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
+        const int best = int(q_best[k]);  // (-1: no hit; signed indices gather)
+        const float found = best >= 0 ? 1.f : 0.f;
+        const int i = best >= 0 ? best : 0;
+        float x[3], y[3], z[3];
+#pragma GCC unroll 3
+        for (int j = 0; j < 3; ++j) {
+            const float *c = coords + 3 * j * stride;
+            float v0 = c[i], v1 = c[stride + i], v2 = c[2 * stride + i];
+            z[j] = pick(kz, v0, v1, v2) - oz;
+            x[j] = (pick(kx, v0, v1, v2) - ox) - sx * z[j];
+            y[j] = (pick(ky, v0, v1, v2) - oy) - sy * z[j];
+        }
+        float U = x[2] * y[1] - y[2] * x[1];
+        float Ve = x[0] * y[2] - y[0] * x[2];
+        float We = x[1] * y[0] - y[1] * x[0];
+        float det = (U + Ve) + We;
+        float inv_det = 1.f / det;
+        float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
+        float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
+        float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
+        float delta_z = g3 * max_zt;
+        float delta_x = g5 * (max_xt + max_zt);
+        float delta_y = g5 * (max_yt + max_zt);
+        float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+        float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
+        float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
+        float fails = q_best_t[k] > delta_t ? 0.f : found;
+        q_retrace[k] = fails != 0.f ? 1.f : q_retrace[k];
+    }
+    // The triangles' primitives (apart: with this gather in the loop above, GCC does not
+    // vectorise that for AVX2).
+    for (int k = 0; k < n; ++k) q_best[k] = q_best[k] != ~0u ? flat_prims_[q_best[k]] : ~0u;
 }
 
 void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
@@ -700,9 +770,17 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
     // Each triangle against every ray, G triangles per pass over the rays (their constants
     // and best hits loaded and stored once per pass).
     FlatRays rays{r.tmin, r.tmax, kx, ky, kz, ox, oy, oz, sx, sy, sz, retrace, best_t, best_u, best_v, best_prim};
+    // (The rounding bound is deferred beyond 16 triangles: cornell-box's 36, 468 -> 440 ms; the
+    // cbox's 12 took 2% longer, the gathers of the check costing more than it saves there.)
     const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;
-    for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4>(&flat_triangles_[i], rays, n);
-    for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1>(&flat_triangles_[i], rays, n);
+    if (n_tris > 16) {
+        for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4, true>(&flat_triangles_[i], uint32_t(i), rays, n);
+        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, true>(&flat_triangles_[i], uint32_t(i), rays, n);
+        flat_rounding_check(rays, n);
+    } else {
+        for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4, false>(&flat_triangles_[i], uint32_t(i), rays, n);
+        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), rays, n);
+    }
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double).
     alignas(64) float near[MaxColumns];

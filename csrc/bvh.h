@@ -108,9 +108,12 @@ private:
         uint32_t prim;
     };
     std::vector<FlatTriangle> flat_triangles_;
+    std::vector<uint32_t> flat_prims_;  ///< flat_triangles_' ids
+    std::vector<float> flat_coords_;    ///< their vertices, [vertex][axis][triangle]
     struct FlatRays;
-    template <int G>
-    static void flat_triangles(const FlatTriangle *tris, const FlatRays &rays, int n);
+    template <int G, bool Deferred>
+    static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);
+    void flat_rounding_check(const FlatRays &rays, int n) const;
     std::vector<uint32_t> flat_spheres_;
 
     const Geometry *geometry_ = nullptr;
