@@ -65,6 +65,33 @@ void Filter::eval_row_other(float x0, int n, float *w) const {
     }
 }
 
+void Filter::eval_rows(const float *x0, int count, int n, float *w, int stride) const {
+    if (type == FilterType::Gaussian) {
+        const float alpha = gaussian_.alpha, bias = gaussian_.bias;
+        for (int o = 0; o < n; ++o) {
+            float *row = w + size_t(o) * stride;
+#pragma GCC ivdep
+            for (int k = 0; k < count; ++k) {
+                float x = x0[k] + float(o);
+                row[k] = std::max(0.f, exp_poly(alpha * x * x) - bias);
+            }
+        }
+    } else if (type == FilterType::Tent) {
+        const float inv_radius = inv_radius_;
+        for (int o = 0; o < n; ++o) {
+            float *row = w + size_t(o) * stride;
+#pragma GCC ivdep
+            for (int k = 0; k < count; ++k) row[k] = std::max(0.f, 1.f - std::abs((x0[k] + float(o)) * inv_radius));
+        }
+    } else {
+        float one[2 * MaxBorder + 1];
+        for (int k = 0; k < count; ++k) {
+            eval_row(x0[k], n, one);
+            for (int o = 0; o < n; ++o) w[size_t(o) * stride + k] = one[o];
+        }
+    }
+}
+
 Ray Camera::orthographic_ray(Vec2 pos) const {
     // Film position -> (1, 1) top left ... (-1, -1) bottom right: camera-local +x is left.
     float sx = 1.f - 2.f * (pos.x / float(film_width));

@@ -40,6 +40,11 @@ struct Filter {
             eval_row_other(x0, n, w);
         }
     }
+    /// eval_row() for `count` samples at once, sample k's row starting at x0[k]: weight o of
+    /// sample k goes to w[o * stride + k] (o < n). For the tent and the gaussian a loop over
+    /// the samples that the compiler vectorises (the same operations as eval_row's, so the
+    /// same weights); the others call eval_row per sample.
+    void eval_rows(const float *x0, int count, int n, float *w, int stride) const;
     /// The largest border() the film handles (radius 16.5 pixels).
     static constexpr int MaxBorder = 16;
     /// How many pixels a sample's splat reaches on each side of the pixel it lies in.

@@ -170,26 +170,17 @@ public:
     /// normalisation). It reaches the pixels for_each_reached reaches.
     template <typename S>
     void splat(Block &block, int px, int py, Vec2 pos, const S *L) const {
-        Footprint fp = footprint(px, py, pos);
-        double l[4] = {0.0, 0.0, 0.0, 1.0};
-        if (L) value_of(*L, l);
-        for (int j = fp.j0; j <= fp.j1; ++j) {
-            size_t row = block.index(fp.x, fp.y + j);
-            PixelSum *sum = &block.sums[row];
-            double wyj = fp.wy[j + fp.b];
-            for (int i = fp.i0; i <= fp.i1; ++i) {
-                double w = double(fp.wx[i + fp.b]) * wyj;
-                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
-                sum[i].weight += w;
-            }
-            if constexpr (IsDual<S>::value) {
-                if (!L || block.tangents.empty()) continue;
-                for (int i = fp.i0; i <= fp.i1; ++i) {
-                    double w = double(fp.wx[i + fp.b]) * wyj;
-                    for (int c = 0; c < 3; ++c) block.tangents[row + i][c] += w * double(L->d[c]);
-                }
-            }
-        }
+        splat(block, footprint(px, py, pos), L);
+    }
+    /// splat() with the sample's filter weights given: row weight i at wx[i * stride], column
+    /// weight j at wy[j * stride] (Filter::eval_rows' layout), i, j < 2 border() + 1.
+    template <typename S>
+    void splat(Block &block, int px, int py, const float *wx, const float *wy, int stride, const S *L) const {
+        Footprint fp;
+        const int n = 2 * camera_.filter.border() + 1;
+        for (int i = 0; i < n; ++i) fp.wx[i] = wx[size_t(i) * stride], fp.wy[i] = wy[size_t(i) * stride];
+        clip(fp, px, py);
+        splat(block, fp, L);
     }
 
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
@@ -304,6 +295,11 @@ private:
     Footprint footprint(int px, int py, Vec2 pos) const {
         Footprint fp;
         camera_.splat_weights(pos, px, py, fp.wx, fp.wy);
+        clip(fp, px, py);
+        return fp;
+    }
+    /// The footprint's window from its weights.
+    void clip(Footprint &fp, int px, int py) const {
         fp.b = camera_.filter.border();
         fp.x = px - camera_.crop_x;
         fp.y = py - camera_.crop_y;
@@ -318,7 +314,30 @@ private:
             fp.j0 += int((fp.j0 < fp.j1) & (fp.wy[fp.j0 + fp.b] == 0.f));
             fp.j1 -= int((fp.j1 > fp.j0) & (fp.wy[fp.j1 + fp.b] == 0.f));
         }
-        return fp;
+    }
+
+    /// Add the sample's weighted value (and weight) into the pixels of its footprint.
+    template <typename S>
+    void splat(Block &block, const Footprint &fp, const S *L) const {
+        double l[4] = {0.0, 0.0, 0.0, 1.0};
+        if (L) value_of(*L, l);
+        for (int j = fp.j0; j <= fp.j1; ++j) {
+            size_t row = block.index(fp.x, fp.y + j);
+            PixelSum *sum = &block.sums[row];
+            double wyj = fp.wy[j + fp.b];
+            for (int i = fp.i0; i <= fp.i1; ++i) {
+                double w = double(fp.wx[i + fp.b]) * wyj;
+                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
+                sum[i].weight += w;
+            }
+            if constexpr (IsDual<S>::value) {
+                if (!L || block.tangents.empty()) continue;
+                for (int i = fp.i0; i <= fp.i1; ++i) {
+                    double w = double(fp.wx[i + fp.b]) * wyj;
+                    for (int c = 0; c < 3; ++c) block.tangents[row + i][c] += w * double(L->d[c]);
+                }
+            }
+        }
     }
 
     template <typename T>
@@ -352,16 +371,29 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
     WavefrontSample batch[WavefrontBatch];
     Vec2 pos[WavefrontBatch];
     RGB<float> L[WavefrontBatch];
+    // The batch's filter weights, computed for all its samples at once (Filter::eval_rows:
+    // the gaussian's exponentials in SIMD lanes), in rows of WavefrontBatch.
+    const int b = camera.filter.border(), rows = 2 * b + 1;
+    std::vector<float> wx(size_t(rows) * WavefrontBatch, 1.f), wy(wx.size(), 1.f);  // (box: 1)
+    alignas(64) float x0[WavefrontBatch], y0[WavefrontBatch];
     int n = 0;
     uint64_t dropped = 0;
     auto flush = [&] {
         trace_wavefront(ctx, ws, cfg, camera, batch, n, pos, L);
+        if (b > 0) {
+            for (int k = 0; k < n; ++k) {  // (as Camera::splat_weights)
+                x0[k] = float(batch[k].px - b) + 0.5f - pos[k].x;
+                y0[k] = float(batch[k].py - b) + 0.5f - pos[k].y;
+            }
+            camera.filter.eval_rows(x0, n, rows, wx.data(), WavefrontBatch);
+            camera.filter.eval_rows(y0, n, rows, wy.data(), WavefrontBatch);
+        }
         for (int k = 0; k < n; ++k) {
             if (!sample_is_finite(L[k])) {
                 ++dropped;
                 continue;
             }
-            film.splat(block, batch[k].px, batch[k].py, pos[k], &L[k]);
+            film.splat(block, batch[k].px, batch[k].py, &wx[k], &wy[k], WavefrontBatch, &L[k]);
         }
         n = 0;
     };

@@ -364,8 +364,10 @@ def test08_vector_stages_vectorise(tmp_path, march):
     # Every loop marked `#pragma GCC ivdep` in wavefront.cpp vectorises, in each of its
     # template instances, for AVX2 and for this machine. An edit that stops GCC (a helper it
     # no longer inlines, a load under a condition) keeps the images bitwise equal and only
-    # makes them slower, which no other test sees.
+    # makes them slower, which no other test sees. So do the film's batched filter weights
+    # (camera.cpp: the tent's and the gaussian's).
     assert assert_marked_loops_vectorise("wavefront.cpp", "#pragma GCC ivdep", march, tmp_path) >= 3
+    assert assert_marked_loops_vectorise("camera.cpp", "#pragma GCC ivdep", march, tmp_path) == 2
 
 
 def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
@@ -505,3 +507,21 @@ def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monke
     wavefront, scalar = render_both(veach, monkeypatch, spp=4, seed=3)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
+
+
+@pytest.mark.parametrize("rfilter", [
+    {"type": "box"}, {"type": "tent", "radius": 1.7}, {"type": "gaussian"}, {"type": "gaussian", "stddev": 1.2},
+    {"type": "mitchell"}, {"type": "lanczos", "lobes": 2}])
+def test16_filter_weights_of_a_batch_are_the_scalar_splats(tmp_path, monkeypatch, rfilter):
+    # The wavefront computes its batch's filter weights at once (Filter::eval_rows, the tent's
+    # and the gaussian's in SIMD lanes); the pixels must be those the scalar integrator
+    # splats sample by sample, with every filter, also where a crop window cuts the splats.
+    d = room_dict(tmp_path)
+    d["sensor"]["film"]["rfilter"] = rfilter
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=5, seed=2)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.01
+    d["sensor"]["film"].update(crop_offset_x=3, crop_offset_y=2, crop_width=11, crop_height=7)
+    wavefront, scalar = render_both(tr.load_dict(d), monkeypatch, spp=5, seed=2)
+    assert wavefront.shape[:2] == (7, 11) and torch.equal(wavefront, scalar)
