@@ -170,17 +170,17 @@ public:
     /// normalisation). It reaches the pixels for_each_reached reaches.
     template <typename S>
     void splat(Block &block, int px, int py, Vec2 pos, const S *L) const {
-        splat(block, footprint(px, py, pos), L);
+        Footprint fp = footprint(px, py, pos);
+        add(block, fp, fp.wx, fp.wy, 1, L);
     }
-    /// splat() with the sample's filter weights given: row weight i at wx[i * stride], column
-    /// weight j at wy[j * stride] (Filter::eval_rows' layout), i, j < 2 border() + 1.
+    /// splat() with the sample's filter weights given, row weight i at wx[i * stride] and
+    /// column weight j at wy[j * stride] (Filter::eval_rows' layout), i, j < 2 border() + 1,
+    /// and how many of them are zero at either end (`lead`, `trail`: at most border()).
+    /// The pixels and their sums are splat()'s, up to zero weights.
     template <typename S>
-    void splat(Block &block, int px, int py, const float *wx, const float *wy, int stride, const S *L) const {
-        Footprint fp;
-        const int n = 2 * camera_.filter.border() + 1;
-        for (int i = 0; i < n; ++i) fp.wx[i] = wx[size_t(i) * stride], fp.wy[i] = wy[size_t(i) * stride];
-        clip(fp, px, py);
-        splat(block, fp, L);
+    void splat(Block &block, int px, int py, const float *wx, const float *wy, size_t stride,
+               const int lead[2], const int trail[2], const S *L) const {
+        add(block, window(px, py, lead[0], trail[0], lead[1], trail[1]), wx, wy, stride, L);
     }
 
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
@@ -284,29 +284,21 @@ private:
                 std::min(camera_.crop_width, x0 + tiles_.size + b), std::min(rows_.end, y0 + tiles_.size + b)};
     }
 
-    /// The filter weights of a sample and the window of pixels they cover, offsets
-    /// [i0, i1] x [j0, j1] from the sample's pixel (x, y in the crop window), clipped to the
-    /// film's columns and rows and to the weights that are not zero at its edges (a tent of
-    /// radius 1 reaches 2 x 2 of its 3 x 3 pixels; what it skips would add zeros).
-    struct Footprint {
-        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
+    /// The window of pixels a sample's splat covers, offsets [i0, i1] x [j0, j1] from the
+    /// sample's pixel (x, y in the crop window), clipped to the film's columns and rows and to
+    /// the weights that are not zero at its edges (a tent of radius 1 reaches 2 x 2 of its
+    /// 3 x 3 pixels; what it skips would add zeros, which leave a sum unchanged).
+    struct Window {
         int b, x, y, i0, i1, j0, j1;
+    };
+    /// A sample's filter weights and its window.
+    struct Footprint : Window {
+        float wx[2 * Filter::MaxBorder + 1], wy[2 * Filter::MaxBorder + 1];
     };
     Footprint footprint(int px, int py, Vec2 pos) const {
         Footprint fp;
         camera_.splat_weights(pos, px, py, fp.wx, fp.wy);
-        clip(fp, px, py);
-        return fp;
-    }
-    /// The footprint's window from its weights.
-    void clip(Footprint &fp, int px, int py) const {
-        fp.b = camera_.filter.border();
-        fp.x = px - camera_.crop_x;
-        fp.y = py - camera_.crop_y;
-        fp.i0 = std::max(-fp.b, -fp.x);
-        fp.i1 = std::min(fp.b, camera_.crop_width - 1 - fp.x);
-        fp.j0 = std::max(-fp.b, rows_.begin - fp.y);
-        fp.j1 = std::min(fp.b, rows_.end - 1 - fp.y);
+        static_cast<Window &>(fp) = window(px, py, 0, 0, 0, 0);
         // (Branch-free: which edge is zero is a coin flip per sample.)
         for (int t = 0; t < fp.b; ++t) {
             fp.i0 += int((fp.i0 < fp.i1) & (fp.wx[fp.i0 + fp.b] == 0.f));
@@ -314,26 +306,42 @@ private:
             fp.j0 += int((fp.j0 < fp.j1) & (fp.wy[fp.j0 + fp.b] == 0.f));
             fp.j1 -= int((fp.j1 > fp.j0) & (fp.wy[fp.j1 + fp.b] == 0.f));
         }
+        return fp;
+    }
+    /// The window of a sample taken in pixel (px, py) whose weights start with `lead` zeros
+    /// and end with `trail` (each at most border()) in x and in y, clipped to the film.
+    Window window(int px, int py, int lead_x, int trail_x, int lead_y, int trail_y) const {
+        Window win;
+        win.b = camera_.filter.border();
+        win.x = px - camera_.crop_x;
+        win.y = py - camera_.crop_y;
+        win.i0 = std::max(lead_x - win.b, -win.x);
+        win.i1 = std::min(win.b - trail_x, camera_.crop_width - 1 - win.x);
+        win.j0 = std::max(lead_y - win.b, rows_.begin - win.y);
+        win.j1 = std::min(win.b - trail_y, rows_.end - 1 - win.y);
+        return win;
     }
 
-    /// Add the sample's weighted value (and weight) into the pixels of its footprint.
+    /// Add a sample's weighted value (and weight) into the pixels of its window, its weights
+    /// at wx[(i + b) * stride] and wy[(j + b) * stride].
     template <typename S>
-    void splat(Block &block, const Footprint &fp, const S *L) const {
+    void add(Block &block, const Window &win, const float *wx, const float *wy, size_t stride,
+             const S *L) const {
         double l[4] = {0.0, 0.0, 0.0, 1.0};
         if (L) value_of(*L, l);
-        for (int j = fp.j0; j <= fp.j1; ++j) {
-            size_t row = block.index(fp.x, fp.y + j);
+        for (int j = win.j0; j <= win.j1; ++j) {
+            size_t row = block.index(win.x, win.y + j);
             PixelSum *sum = &block.sums[row];
-            double wyj = fp.wy[j + fp.b];
-            for (int i = fp.i0; i <= fp.i1; ++i) {
-                double w = double(fp.wx[i + fp.b]) * wyj;
+            double wyj = wy[size_t(j + win.b) * stride];
+            for (int i = win.i0; i <= win.i1; ++i) {
+                double w = double(wx[size_t(i + win.b) * stride]) * wyj;
                 for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
                 sum[i].weight += w;
             }
             if constexpr (IsDual<S>::value) {
                 if (!L || block.tangents.empty()) continue;
-                for (int i = fp.i0; i <= fp.i1; ++i) {
-                    double w = double(fp.wx[i + fp.b]) * wyj;
+                for (int i = win.i0; i <= win.i1; ++i) {
+                    double w = double(wx[size_t(i + win.b) * stride]) * wyj;
                     for (int c = 0; c < 3; ++c) block.tangents[row + i][c] += w * double(L->d[c]);
                 }
             }
@@ -376,6 +384,9 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
     const int b = camera.filter.border(), rows = 2 * b + 1;
     std::vector<float> wx(size_t(rows) * WavefrontBatch, 1.f), wy(wx.size(), 1.f);  // (box: 1)
     alignas(64) float x0[WavefrontBatch], y0[WavefrontBatch];
+    // Per sample, the zero weights at the start and end of its x and y rows, and whether all
+    // those counted so far were zero.
+    alignas(64) int zeros[4][WavefrontBatch] = {}, all_zero[4][WavefrontBatch];
     int n = 0;
     uint64_t dropped = 0;
     auto flush = [&] {
@@ -387,13 +398,30 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
             }
             camera.filter.eval_rows(x0, n, rows, wx.data(), WavefrontBatch);
             camera.filter.eval_rows(y0, n, rows, wy.data(), WavefrontBatch);
+            // How many weights are zero at either end of each row (at most b), a pass per offset.
+            std::fill_n(&zeros[0][0], 4 * WavefrontBatch, 0);
+            std::fill_n(&all_zero[0][0], 4 * WavefrontBatch, 1);
+            for (int t = 0; t < b; ++t) {
+                const float *ends[4] = {&wx[size_t(t) * WavefrontBatch], &wx[size_t(rows - 1 - t) * WavefrontBatch],
+                                        &wy[size_t(t) * WavefrontBatch], &wy[size_t(rows - 1 - t) * WavefrontBatch]};
+                for (int e = 0; e < 4; ++e) {
+                    const float *w = ends[e];
+                    int *count = zeros[e], *all = all_zero[e];
+#pragma GCC ivdep
+                    for (int k = 0; k < n; ++k) {
+                        all[k] &= int(w[k] == 0.f);
+                        count[k] += all[k];
+                    }
+                }
+            }
         }
         for (int k = 0; k < n; ++k) {
             if (!sample_is_finite(L[k])) {
                 ++dropped;
                 continue;
             }
-            film.splat(block, batch[k].px, batch[k].py, &wx[k], &wy[k], WavefrontBatch, &L[k]);
+            const int lead[2] = {zeros[0][k], zeros[2][k]}, trail[2] = {zeros[1][k], zeros[3][k]};
+            film.splat(block, batch[k].px, batch[k].py, &wx[k], &wy[k], WavefrontBatch, lead, trail, &L[k]);
         }
         n = 0;
     };
