@@ -70,6 +70,35 @@ RBPT_INLINE float exp_poly(float x) {
     return p * scale;
 }
 
+/// log(x) for a normal, finite float x > 0, without libm, so that vectorised loops can call
+/// it: x = m 2^e with m in [sqrt(1/2), sqrt(2)), and log(m) from Cephes' logf polynomial in
+/// m - 1 (within 2 ulps of libm's, tests/cpp test13); ln2 in two parts.
+RBPT_INLINE float log_poly(float x) {
+    int32_t bits;
+    std::memcpy(&bits, &x, sizeof bits);
+    float e = float(((bits >> 23) & 0xff) - 127);
+    int32_t mantissa = (bits & 0x007fffff) | 0x3f800000;  // m in [1, 2)
+    float m;
+    std::memcpy(&m, &mantissa, sizeof m);
+    float high = m > 1.41421356f ? 1.f : 0.f;
+    m = high != 0.f ? 0.5f * m : m;
+    e = e + high;
+    float f = m - 1.f, z = f * f;
+    float p = 7.0376836292e-2f;
+    p = p * f - 1.1514610310e-1f;
+    p = p * f + 1.1676998740e-1f;
+    p = p * f - 1.2420140846e-1f;
+    p = p * f + 1.4249322787e-1f;
+    p = p * f - 1.6668057665e-1f;
+    p = p * f + 2.0000714765e-1f;
+    p = p * f - 2.4999993993e-1f;
+    p = p * f + 3.3333331174e-1f;
+    float y = (p * f) * z;
+    y = y + -2.12194440e-4f * e;
+    y = y - 0.5f * z;
+    return (f + y) + 0.693359375f * e;
+}
+
 struct Vec3 {
     float x = 0, y = 0, z = 0;
     Vec3() = default;

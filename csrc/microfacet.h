@@ -13,6 +13,7 @@
 #include <type_traits>
 
 #include "math.h"
+#include "warp.h"
 
 namespace rbpt {
 
@@ -112,6 +113,135 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
            wi.z;
 }
 
+/// Inverse error function in float: Giles' single-precision approximation (relative error
+/// below 3e-7, as Dr.Jit's), on log_poly, both of its branches computed and one selected, so
+/// that vectorised loops can call it; -inf and inf at -1 and 1 and beyond.
+RBPT_INLINE float erfinv(float x) {
+    float w = -log_poly((1.f - x) * (1.f + x));  // (finite at +-1, where the result is selected)
+    float v = w - 2.5f;
+    float p = 2.81022636e-08f;
+    p = 3.43273939e-07f + p * v;
+    p = -3.5233877e-06f + p * v;
+    p = -4.39150654e-06f + p * v;
+    p = 0.00021858087f + p * v;
+    p = -0.00125372503f + p * v;
+    p = -0.00417768164f + p * v;
+    p = 0.246640727f + p * v;
+    p = 1.50140941f + p * v;
+    float t = std::sqrt(std::max(w, 0.f)) - 3.f;
+    float q = -0.000200214257f;
+    q = 0.000100950558f + q * t;
+    q = 0.00134934322f + q * t;
+    q = -0.00367342844f + q * t;
+    q = 0.00573950773f + q * t;
+    q = -0.0076224613f + q * t;
+    q = 0.00943887047f + q * t;
+    q = 1.00167406f + q * t;
+    q = 2.83297682f + q * t;
+    float r = (w < 5.f ? p : q) * x;
+    r = x <= -1.f ? -std::numeric_limits<float>::infinity() : r;
+    return x >= 1.f ? std::numeric_limits<float>::infinity() : r;
+}
+
+/// acos(x) for x in [0, 1] (Abramowitz and Stegun 4.4.46: absolute error below 2e-8).
+RBPT_INLINE float acos_poly(float x) {
+    float p = -0.0012624911f;
+    p = p * x + 0.0066700901f;
+    p = p * x - 0.0170881256f;
+    p = p * x + 0.0308918810f;
+    p = p * x - 0.0501743046f;
+    p = p * x + 0.0889789874f;
+    p = p * x - 0.2145988016f;
+    p = p * x + 1.5707963050f;
+    return std::sqrt(std::max(0.f, 1.f - x)) * p;
+}
+
+/// The slopes of Beckmann's microfacet normals visible from direction w (wi stretched to the
+/// alpha = 1 configuration, w.z > 0; Jakob 2014), rotated to w's azimuth: at (near) normal
+/// incidence polar (radius from u.x, angle from u.y), else by inverting the CDF of the x
+/// slope with a safeguarded Newton search until it is within 1e-6 of u.x (two steps for most
+/// samples; Mitsuba stops after three steps whatever the residual). Inline and without libm
+/// (log_poly, exp_poly, erfc_poly, erfinv), so that the wavefront runs it lane by lane with
+/// the operations of VisibleNormalSampler, which uses it (beckmann_stage).
+struct BeckmannSlopes {
+    static constexpr float InvSqrtPi = 0.56418958354775628f;
+    float cos_phi = 1.f, sin_phi = 0.f;
+    float polar = 0.f;  ///< 1 where w.z > 0.99999 (polar slopes), else 0
+    // The CDF inversion's constants (unused where polar).
+    float tan_i = 0.f, erf_cot = 0.f, fit = 0.f, normalization = 0.f;
+
+    /// The Newton search for the x slope: the interval [a, c] and guess b in the erf() domain,
+    /// the last erfinv, and whether it has converged (1 or 0).
+    struct Search {
+        float a, b, c, inv_erf, u1, converged;
+    };
+
+    BeckmannSlopes() = default;
+    RBPT_INLINE explicit BeckmannSlopes(const Vec3 &w) {
+        float sin_t = std::sqrt(w.x * w.x + w.y * w.y);
+        cos_phi = sin_t > 0.f ? w.x / sin_t : 1.f;
+        sin_phi = sin_t > 0.f ? w.y / sin_t : 0.f;
+        polar = w.z > 0.99999f ? 1.f : 0.f;
+        float cos_i = polar != 0.f ? 0.5f : w.z;  // (polar: any value that keeps these finite)
+        float sin_i = std::sqrt(std::max(0.f, 1.f - cos_i * cos_i));
+        tan_i = sin_i / cos_i;
+        float cot_i = 1.f / tan_i;
+        erf_cot = 1.f - erfc_poly(cot_i);
+        // Jakob's fit of the initial guess's exponent.
+        float theta_i = acos_poly(cos_i);
+        fit = 1.f + theta_i * (-0.876f + theta_i * (0.4265f - 0.0594f * theta_i));
+        // (e^-cot^2 is below 1e-35 beyond cot = 9.)
+        float tail = cot_i < 9.f ? InvSqrtPi * tan_i * exp_poly(-cot_i * cot_i) : 0.f;
+        normalization = 1.f / (1.f + erf_cot + tail);
+    }
+
+    /// The search for u1 (non-polar), from Jakob's initial guess.
+    RBPT_INLINE Search start(float u1) const {
+        Search s;
+        s.u1 = std::max(u1, 1e-6f);
+        s.a = -1.f;
+        s.c = erf_cot;
+        s.b = s.c - (1.f + s.c) * exp_poly(fit * log_poly(1.f - s.u1));  // (1 - u1)^fit
+        s.inv_erf = 0.f;
+        s.converged = 0.f;
+        return s;
+    }
+    /// One Newton step (bisecting where the guess left the interval); none once converged.
+    RBPT_INLINE void step(Search &s) const {
+        float b = (s.b >= s.a && s.b <= s.c) ? s.b : 0.5f * (s.a + s.c);
+        float inv_erf = erfinv(b);
+        float value = normalization * (1.f + b + InvSqrtPi * tan_i * exp_poly(-inv_erf * inv_erf)) - s.u1;
+        float derivative = normalization * (1.f - inv_erf * tan_i);
+        float done = std::abs(value) < 1e-6f ? 1.f : 0.f;
+        float a = value > 0.f ? s.a : b, c = value > 0.f ? b : s.c;
+        float next = done != 0.f ? b : b - value / derivative;
+        float keep = s.converged;
+        s.a = keep != 0.f || done != 0.f ? s.a : a;
+        s.c = keep != 0.f || done != 0.f ? s.c : c;
+        s.b = keep != 0.f ? s.b : next;
+        s.inv_erf = keep != 0.f ? s.inv_erf : inv_erf;
+        s.converged = keep != 0.f ? keep : done;
+    }
+    /// Steps the search runs at most.
+    static constexpr int MaxSteps = 100;
+    /// The x slope the search reached (the converged step already inverted b).
+    RBPT_INLINE static float slope(const Search &s) { return s.converged != 0.f ? s.inv_erf : erfinv(s.b); }
+
+    /// VisibleNormalSampler's part_x for a search run to its end (non-polar), or polar.
+    RBPT_INLINE float polar_radius(float u1) const { return std::sqrt(-log_poly(std::max(1.f - u1, 1e-30f))); }
+    /// Its part_y: erfinv(2 u2 - 1) (non-polar), or the polar angle's cosine and sine.
+    RBPT_INLINE Vec2 part_y(float u2) const {
+        return polar != 0.f ? warp::cossin_2pi(u2) : Vec2{erfinv(2.f * u2 - 1.f), 0.f};
+    }
+    /// The unit normal of the slopes for px = (part_x, 0) and py = part_y, unstretched by alpha.
+    RBPT_INLINE Vec3 normal(float alpha, Vec2 px, Vec2 py) const {
+        float sx = polar != 0.f ? px.x * py.x : px.x, sy = polar != 0.f ? px.x * py.y : py.x;
+        float mx = (cos_phi * sx - sin_phi * sy) * alpha;
+        float my = (sin_phi * sx + cos_phi * sy) * alpha;
+        return normalize(Vec3{-mx, -my, 1.f});
+    }
+};
+
 /// Sampling of the microfacet normals visible from one direction wi (wi.z > 0), distributed
 /// as visible_normal_pdf. What depends only on (distribution, alpha, wi) is computed once, at
 /// construction. A sample is separable in u: part_x(u.x) depends on u.x alone (Beckmann's
@@ -129,21 +259,13 @@ public:
     Vec3 normal(Vec2 px, Vec2 py) const;
 
 private:
-    /// Beckmann: whether wi is close enough to the normal for polar slopes. (A comparison,
-    /// not a stored flag: a vectorised loop can select on it.)
-    bool polar() const { return w_.z > 0.99999f; }
-
     MicrofacetType type_;
     float alpha_;
     Vec3 w_;  ///< wi stretched to the alpha = 1 configuration
     // GGX: a frame around w_ and the weight of the hemisphere's half that wi sees.
     Vec3 t1_, t2_;
     float s_ = 0.f;
-    // Beckmann: rotation of the slopes to wi's azimuth; at (near) normal incidence the slopes
-    // are polar (radius from u.x, angle from u.y; see polar()), else the CDF inversion's
-    // constants.
-    float cos_phi_ = 1.f, sin_phi_ = 0.f;
-    float tan_i_ = 0.f, erf_cot_ = 0.f, fit_ = 0.f, normalization_ = 0.f;
+    BeckmannSlopes beckmann_;  ///< Beckmann's constants
 };
 
 // Inline: roughplastic's quadratures call it in loops that the compiler vectorises.
@@ -155,11 +277,7 @@ inline Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
         Vec3 nh = t1_ * p1 + t2_ * p2 + w_ * safe_sqrt(1.f - p1 * p1 - p2 * p2);
         return normalize(Vec3{alpha_ * nh.x, alpha_ * nh.y, std::max(0.f, nh.z)});
     } else {
-        // Slopes for alpha = 1, rotated to wi's azimuth and unstretched.
-        float sx = polar() ? px.x * py.x : px.x, sy = polar() ? px.x * py.y : py.x;
-        float mx = (cos_phi_ * sx - sin_phi_ * sy) * alpha_;
-        float my = (sin_phi_ * sx + cos_phi_ * sy) * alpha_;
-        return normalize(Vec3{-mx, -my, 1.f});
+        return beckmann_.normal(alpha_, px, py);
     }
 }
 
@@ -170,8 +288,5 @@ inline Vec3 VisibleNormalSampler::normal(Vec2 px, Vec2 py) const {
 
 /// Sample a microfacet normal visible from wi (wi.z > 0), distributed as visible_normal_pdf.
 Vec3 sample_visible_normal(MicrofacetType type, float alpha, const Vec3 &wi, Vec2 u);
-
-/// Inverse error function (single precision).
-float erfinv(float x);
 
 }  // namespace rbpt

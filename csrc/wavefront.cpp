@@ -769,40 +769,136 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
     }
 }
 
-/// The visible normals of the Beckmann lanes' BSDF samples, one lane at a time with
-/// VisibleNormalSampler (a Newton solve), before the vector stage: from the random numbers
-/// the vector stage will draw for the sample (after the emitter sample's two), in the frame
-/// it samples in (twosided's flip), where the sample takes one (a conductor's; a
-/// roughplastic's where u1 picks the specular lobe). Lists those lanes in `lanes` and
-/// returns their number.
+/// beckmann_stage's Newton searches, lane j's state and constants in column j.
+struct BeckmannSearches {
+    float *tan_i, *normalization, *a, *b, *c, *inv_erf, *u1, *done;
+    RBPT_INLINE BeckmannSlopes slopes(int j) const {
+        BeckmannSlopes slopes;
+        slopes.tan_i = tan_i[j], slopes.normalization = normalization[j];
+        return slopes;
+    }
+    RBPT_INLINE BeckmannSlopes::Search load(int j) const { return {a[j], b[j], c[j], inv_erf[j], u1[j], done[j]}; }
+    RBPT_INLINE void store(int j, const BeckmannSlopes::Search &s) const {
+        a[j] = s.a, b[j] = s.b, c[j] = s.c, inv_erf[j] = s.inv_erf, done[j] = s.converged;
+    }
+    /// A step of the searches of lanes [0, m); returns how many have not converged. (Not
+    /// inline: inside beckmann_stage's loop over steps GCC does not vectorise it.)
+    __attribute__((noinline)) float step(int m) const {
+        // (The columns as locals: loads through the struct's pointers do not vectorise.)
+        const float *q_tan_i = tan_i, *q_normalization = normalization, *q_u1 = u1;
+        float *q_a = a, *q_b = b, *q_c = c, *q_inv_erf = inv_erf, *q_done = done;
+        float open = 0.f;
+#pragma GCC ivdep
+        for (int j = 0; j < m; ++j) {
+            BeckmannSlopes slopes;
+            slopes.tan_i = q_tan_i[j], slopes.normalization = q_normalization[j];
+            BeckmannSlopes::Search s{q_a[j], q_b[j], q_c[j], q_inv_erf[j], q_u1[j], q_done[j]};
+            slopes.step(s);
+            q_a[j] = s.a, q_b[j] = s.b, q_c[j] = s.c, q_inv_erf[j] = s.inv_erf, q_done[j] = s.converged;
+            open += 1.f - s.converged;
+        }
+        return open;
+    }
+};
+
+/// The visible normals of the Beckmann lanes' BSDF samples, before the vector stage, and
+/// the microfacet terms towards the sampled direction: from the random numbers the vector
+/// stage will draw for the sample (after the emitter sample's two), in the frame it samples
+/// in (twosided's flip), with a normal where the sample takes one (a conductor's; a
+/// roughplastic's where u1 picks the specular lobe). The random numbers come from a copy of
+/// each lane's stream, one lane at a time; the rest runs in SIMD lanes over the listed lanes
+/// (BeckmannSlopes' operations, so the normals are VisibleNormalSampler's bit for bit): the
+/// Newton search a step per pass while any lane's continues (most converge in two), its
+/// rare long tails one lane at a time. Lists the Beckmann lanes in `lanes` and returns their
+/// number.
 int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
-    int count = 0;
+    constexpr int B = WavefrontBatch;
+    // The lanes that sample (wi above the surface), packed: lane, wi, alpha, u2, whether the
+    // sample is the plastic's diffuse base (1: no normal).
+    alignas(64) int lane[B];
+    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B];
+    int count = 0, m = 0;
     for (int k = 0; k < n; ++k) {
-        const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
+        const WavefrontScene::Material &mat = ws.materials[size_t(b.mat[k])];
         b.bmx[k] = 0.f, b.bmy[k] = 0.f, b.bmz[k] = 1.f;
         b.bD[k] = b.bgi[k] = b.bgo[k] = 0.f;
-        if (!b.shade[k] || m.beckmann == 0.f) continue;
+        if (!b.shade[k] || mat.beckmann == 0.f) continue;
         lanes[count++] = k;
         Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
-        if (m.twosided != 0 && wi.z < 0.f) wi.z = wi.z * -1.f;
+        if (mat.twosided != 0 && wi.z < 0.f) wi.z = wi.z * -1.f;
         if (!(wi.z > 0.f)) continue;
         uint64_t state = b.state[k];
         auto next = [&] { return uniform_float(pcg32_next(state, b.inc[k])); };
         next(), next();  // the emitter sample's
         const float u1 = next();
-        Vec2 u2;
-        u2.x = next();
-        u2.y = next();
-        // (The vector stage's choice of direction, and its terms towards it.)
-        const bool base = m.plastic != 0.f && !(u1 < specular_probability(m, transmittance(ws.tables.data(), m.table, wi.z)));
-        Vec3 wo = warp::square_to_cosine_hemisphere(u2);
-        if (!base) {
-            const Vec3 normal = sample_visible_normal(MicrofacetType::Beckmann, m.alpha, wi, u2);
-            b.bmx[k] = normal.x, b.bmy[k] = normal.y, b.bmz[k] = normal.z;
-            wo = reflect(wi, normal);
-        }
-        const MicrofacetTerms t = beckmann_terms(m.alpha, wi, wo);
-        b.bD[k] = t.D, b.bgi[k] = t.g_i, b.bgo[k] = t.g;
+        ux[m] = next();
+        uy[m] = next();
+        // (The vector stage's choice of lobe.)
+        const bool diffuse = mat.plastic != 0.f &&
+                             !(u1 < specular_probability(mat, transmittance(ws.tables.data(), mat.table, wi.z)));
+        lane[m] = k;
+        wx[m] = wi.x, wy[m] = wi.y, wz[m] = wi.z;
+        alpha[m] = mat.alpha;
+        base[m] = diffuse ? 1.f : 0.f;
+        ++m;
+    }
+    // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes and the
+    // base's lanes search nothing).
+    alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], erf_cot[B], normalization[B];
+    alignas(64) float sa[B], sb[B], sc[B], s_inv[B], s_u1[B], s_done[B];
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const BeckmannSlopes slopes(normalize(Vec3{alpha[j] * wx[j], alpha[j] * wy[j], wz[j]}));
+        const BeckmannSlopes::Search s = slopes.start(ux[j]);
+        cos_phi[j] = slopes.cos_phi, sin_phi[j] = slopes.sin_phi, polar[j] = slopes.polar;
+        tan_i[j] = slopes.tan_i, erf_cot[j] = slopes.erf_cot, normalization[j] = slopes.normalization;
+        sa[j] = s.a, sb[j] = s.b, sc[j] = s.c, s_inv[j] = s.inv_erf, s_u1[j] = s.u1;
+        s_done[j] = polar[j] != 0.f || base[j] != 0.f ? 1.f : s.converged;
+    }
+    // The searches' steps, all lanes at once while any continues (a converged one stays),
+    // the rare long tails one lane at a time.
+    BeckmannSearches searches{tan_i, normalization, sa, sb, sc, s_inv, s_u1, s_done};
+    constexpr int LaneSteps = 4;
+    int steps = 0;
+    while (steps < LaneSteps && searches.step(m) > 0.f) ++steps;
+    for (int j = 0; steps == LaneSteps && j < m; ++j) {
+        BeckmannSlopes::Search s = searches.load(j);
+        for (int it = LaneSteps; it < BeckmannSlopes::MaxSteps && s.converged == 0.f; ++it) searches.slopes(j).step(s);
+        searches.store(j, s);
+    }
+    // The normals (VisibleNormalSampler::normal of part_x and part_y) and the sampled
+    // directions.
+    alignas(64) float nx[B], ny[B], nz[B], ox[B], oy[B], oz[B];
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        BeckmannSlopes slopes;
+        slopes.cos_phi = cos_phi[j], slopes.sin_phi = sin_phi[j], slopes.polar = polar[j];
+        const BeckmannSlopes::Search s{sa[j], sb[j], sc[j], s_inv[j], s_u1[j], s_done[j]};
+        const float px = polar[j] != 0.f ? slopes.polar_radius(ux[j]) : BeckmannSlopes::slope(s);
+        const Vec3 normal = slopes.normal(alpha[j], {px, 0.f}, slopes.part_y(uy[j]));
+        const Vec3 wi{wx[j], wy[j], wz[j]};
+        const Vec3 wo = reflect(wi, normal);
+        const bool diffuse = base[j] != 0.f;
+        nx[j] = diffuse ? 0.f : normal.x, ny[j] = diffuse ? 0.f : normal.y, nz[j] = diffuse ? 1.f : normal.z;
+        ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
+    }
+    // The base's cosine-weighted directions (one lane at a time: their branches).
+    for (int j = 0; j < m; ++j) {
+        if (base[j] == 0.f) continue;
+        const Vec3 wo = warp::square_to_cosine_hemisphere({ux[j], uy[j]});
+        ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
+    }
+    // The microfacet terms towards them.
+    alignas(64) float D[B], g_i[B], g_o[B];
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const MicrofacetTerms t = beckmann_terms(alpha[j], {wx[j], wy[j], wz[j]}, {ox[j], oy[j], oz[j]});
+        D[j] = t.D, g_i[j] = t.g_i, g_o[j] = t.g;
+    }
+    for (int j = 0; j < m; ++j) {
+        const int k = lane[j];
+        b.bmx[k] = nx[j], b.bmy[k] = ny[j], b.bmz[k] = nz[j];
+        b.bD[k] = D[j], b.bgi[k] = g_i[j], b.bgo[k] = g_o[j];
     }
     return count;
 }

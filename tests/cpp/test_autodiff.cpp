@@ -877,6 +877,29 @@ static void test13_vectorisable_math() {
     // GGX's G1 does not depend on the flag.
     Vec3 v = normalize(Vec3(0.7f, 0.2f, 0.4f));
     CHECK((smith_G1<MicrofacetType::GGX, true>(0.3f, v, m) == smith_G1<MicrofacetType::GGX>(0.3f, v, m)));
+    // log_poly within 2 ulps of the exact log over normal floats (1e-30 to 1e30, and around
+    // 1, where log is small); erfinv's inverse within Giles' 3e-7 plus rounding; acos_poly
+    // within A&S's 2e-8 plus rounding.
+    double worst_log = 0.0, worst_erfinv = 0.0, worst_acos = 0.0;
+    for (int i = 0; i <= 200000; ++i) {
+        float x = std::pow(10.f, -30.f + 60.f * float(i) / 200000.f);
+        float near1 = 0.5f + float(i) / 200000.f;
+        for (float y : {x, near1}) {
+            double ref = std::log(double(y));
+            double ulp = std::max(std::abs(ref), 1e-30) * 1.19e-7;  // (of the result)
+            worst_log = std::max(worst_log, std::abs(log_poly(y) - ref) / ulp);
+        }
+        float u = -0.999999f + 1.999998f * float(i) / 200000.f;
+        float e = erfinv(u);
+        worst_erfinv = std::max(worst_erfinv, std::abs(std::erf(double(e)) - u) / std::max(1e-3, std::abs(double(u))));
+        float c = float(i) / 200000.f;
+        worst_acos = std::max(worst_acos, std::abs(acos_poly(c) - std::acos(double(c))));
+    }
+    CHECK(worst_log < 2.0);      // in ulps (measured 0.65)
+    CHECK(worst_erfinv < 1e-6);  // (measured 2.4e-7)
+    CHECK(worst_acos < 3e-7);    // (measured 2.4e-7)
+    CHECK(std::isinf(erfinv(1.f)) && erfinv(1.f) > 0.f && std::isinf(erfinv(-1.f)) && erfinv(-1.f) < 0.f);
+    CHECK(log_poly(1.f) == 0.f);
 }
 
 // ---- 5. Sink nodes: parameter reads that scatter into a gradient buffer ---------------------
