@@ -559,6 +559,25 @@ py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tenso
     return py::make_tuple(t, shape);
 }
 
+/// Whether each ray, given as it is, is blocked in its interval (BVH::occluded; for tests).
+torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
+                            torch::Tensor tmin, torch::Tensor tmax) {
+    int64_t n = ray_batch(origins, directions);
+    tmin = tmin.to(torch::kFloat32).contiguous();
+    tmax = tmax.to(torch::kFloat32).contiguous();
+    if (tmin.numel() != n || tmax.numel() != n) fail("tmin and tmax must have one entry per ray");
+    torch::Tensor blocked = torch::empty({n}, torch::kBool);
+    const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
+    for (int64_t i = 0; i < n; ++i) {
+        Ray ray;
+        ray.o = {o[3 * i], o[3 * i + 1], o[3 * i + 2]};
+        ray.d = {d[3 * i], d[3 * i + 1], d[3 * i + 2]};
+        ray.tmin = tmin.data_ptr<float>()[i], ray.tmax = tmax.data_ptr<float>()[i];
+        blocked.data_ptr<bool>()[i] = scene.bvh.occluded(ray);
+    }
+    return blocked;
+}
+
 /// Closest hits of rays given as they are (no normalisation), with their intervals (for
 /// tests): (t, prim (-1: none), u, v), from BVH::intersect per ray, or from
 /// BVH::intersect_columns in batches of BVH::MaxColumns (`columns`).
@@ -950,6 +969,7 @@ PYBIND11_MODULE(_C, m) {
     m.def("intersect_rays", &intersect_rays);
     m.def("interact_rays", &interact_rays);
     m.def("closest_hits", &closest_hits);
+    m.def("occluded_rays", &occluded_rays);
     m.def("sample_count", [](const py::dict &camera, int spp) {
         SamplerDesc s = make_sampler(camera);
         set_spp(s, spp);

@@ -222,3 +222,40 @@ def test06_flat_intersection_vectorises(tmp_path, march):
     # near test) vectorise for AVX2 and for this machine: an edit that stops GCC keeps the
     # hits bitwise equal and only makes them slower, which no other test sees.
     assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 4
+
+
+def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside():
+    # Shadow rays (BVH::occluded, which stops at the first hit) are blocked exactly where the
+    # nearest hit lies inside their interval: rays towards points on the spheres stopping
+    # short by the shadow epsilon (as towards a sphere light), rays from inside, from the
+    # surfaces, and with random and unbounded intervals.
+    centers = np.array([[0.0, 0.0, 0.0], [1.5, 0.2, 0.0], [-1.0, 1.0, 0.5], [0.3, -1.2, 1.0]])
+    radii = np.array([0.5, 0.3, 0.05, 0.8])
+    scene = tr.load_dict({"type": "scene", **{f"s{i}": {"type": "sphere", "center": c.tolist(), "radius": float(r)}
+                                              for i, (c, r) in enumerate(zip(centers, radii))},
+                          "floor": {"type": "rectangle", "to_world": tr.Transform.translate([0, -2.5, 0]).rotate([1, 0, 0], -90).scale(4)}})
+    rng = np.random.default_rng(8)
+    n = 6000
+    o = rng.normal(size=(n, 3)) * 2.0
+    which = rng.integers(0, 4, n)
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    target = centers[which] + normal * radii[which, None]
+    d = target - o
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    tmax = dist * (1 - 10 * 1500 * 2.0 ** -24)  # (spawn_ray_to's shadow epsilon)
+    tmin = np.zeros(n)
+    # Random directions and intervals, some unbounded; origins on and inside the spheres.
+    m = n // 2
+    d[m:] = rng.normal(size=(n - m, 3))
+    d[m:] /= np.linalg.norm(d[m:], axis=1, keepdims=True)
+    tmax[m:] = np.where(rng.random(n - m) < 0.2, np.inf, rng.random(n - m) * 4)
+    tmin[m:] = np.where(rng.random(n - m) < 0.3, rng.random(n - m) * 0.5, 0.0)
+    o[m:m + 1000] = target[m:m + 1000]  # on a surface
+    o[m + 1000:m + 2000] = centers[which[m + 1000:m + 2000]] + normal[m + 1000:m + 2000] * radii[which[m + 1000:m + 2000], None] * 0.5
+    rays = [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
+    blocked = tr._C.occluded_rays(scene._native, *rays)
+    hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
+    assert 500 < int(blocked.sum()) < n - 500
+    assert torch.equal(blocked, hit)
