@@ -577,6 +577,23 @@ RBPT_INLINE float max_ps(float a, float b) { return a > b ? a : b; }
 /// c selects among a (0), b (1) and d (2): an axis of a vertex, picked per ray.
 RBPT_INLINE float pick(int c, float a, float b, float d) { return c == 0 ? a : (c == 1 ? b : d); }
 
+/// The watertight test's bound on the rounding error of t (pbrt-v4's conservative bound, as
+/// intersect_triangles() computes it) from the sheared vertices x, y, z, the ray's sz, the
+/// edge functions and 1 / det.
+RBPT_INLINE float t_error_bound(const float x[3], const float y[3], const float z[3], float sz, float U,
+                                float Ve, float We, float inv_det) {
+    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
+    float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
+    float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
+    float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
+    float delta_z = g3 * max_zt;
+    float delta_x = g5 * (max_xt + max_zt);
+    float delta_y = g5 * (max_yt + max_zt);
+    float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+    float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
+    return (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
+}
+
 }  // namespace
 
 /// intersect_columns()'s rays: their intervals, the watertight test's constants (kx, ky, kz
@@ -598,7 +615,6 @@ struct BVH::FlatRays {
 /// (`first` is tris' own); otherwise as its primitive.
 template <int G, bool Deferred>
 void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &q, int n) {
-    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
     // (The columns as locals: loads through the struct's pointers do not vectorise.)
     const float *q_tmin = q.tmin, *q_tmax = q.tmax, *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz;
     const float *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
@@ -643,19 +659,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
             float t = T * inv_det;
             float hit = t > tmin ? inside : 0.f;
             hit = t < tmax ? hit : 0.f;
-            if constexpr (!Deferred) {
-                float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
-                float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
-                float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
-                float delta_z = g3 * max_zt;
-                float delta_x = g5 * (max_xt + max_zt);
-                float delta_y = g5 * (max_yt + max_zt);
-                float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
-                float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
-                float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) *
-                                std::abs(inv_det);
-                hit = t > delta_t ? hit : 0.f;
-            }
+            if constexpr (!Deferred) hit = t > t_error_bound(x, y, z, sz, U, Ve, We, inv_det) ? hit : 0.f;
             retrace = edge != 0.f ? 1.f : retrace;
             // The nearest; a tie leaves the order to intersect()'s traversal.
             float tie = t == best_t ? hit : 0.f;
@@ -678,7 +682,6 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
 /// origin on that triangle, within rounding) is marked for intersect(). `best` becomes the
 /// hit's primitive.
 void BVH::flat_rounding_check(const FlatRays &q, int n) const {
-    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
     const float *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz, *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
     const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
     float *q_retrace = q.retrace;
@@ -707,16 +710,7 @@ void BVH::flat_rounding_check(const FlatRays &q, int n) const {
         float We = x[1] * y[0] - y[1] * x[0];
         float det = (U + Ve) + We;
         float inv_det = 1.f / det;
-        float max_zt = std::abs(sz) * max_ps(std::abs(z[0]), max_ps(std::abs(z[1]), std::abs(z[2])));
-        float max_xt = max_ps(std::abs(x[0]), max_ps(std::abs(x[1]), std::abs(x[2])));
-        float max_yt = max_ps(std::abs(y[0]), max_ps(std::abs(y[1]), std::abs(y[2])));
-        float delta_z = g3 * max_zt;
-        float delta_x = g5 * (max_xt + max_zt);
-        float delta_y = g5 * (max_yt + max_zt);
-        float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
-        float max_e = max_ps(std::abs(U), max_ps(std::abs(Ve), std::abs(We)));
-        float delta_t = (3.f * (g3 * (max_e * max_zt) + (delta_e * max_zt + delta_z * max_e))) * std::abs(inv_det);
-        float fails = q_best_t[k] > delta_t ? 0.f : found;
+        float fails = q_best_t[k] > t_error_bound(x, y, z, sz, U, Ve, We, inv_det) ? 0.f : found;
         q_retrace[k] = fails != 0.f ? 1.f : q_retrace[k];
     }
     // The triangles' primitives (apart: with this gather in the loop above, GCC does not
