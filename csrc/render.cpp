@@ -123,6 +123,56 @@ struct Rect {
     size_t area() const { return x1 > x0 && y1 > y0 ? size_t(x1 - x0) * size_t(y1 - y0) : 0; }
 };
 
+/// The filter weights of a batch of samples, computed for all of them at once
+/// (Filter::eval_rows: the tent's and the gaussian's in SIMD lanes): row weight i of sample k
+/// at wx[i * Batch + k] (i < 2 border() + 1), likewise wy, and how many of each row's
+/// weights are zero at its start and end (at most border()), counted in lanes too. The
+/// wavefront's film splats with them; the backward pass sums its weights and gathers its
+/// adjoints with them.
+struct SplatWeights {
+    static constexpr int Batch = 256;
+    const Filter &filter;
+    const int b, rows;
+    std::vector<float> wx, wy;
+    /// Each sample's row start, float(px - b) + 0.5 - pos.x (Camera::splat_weights), and y's:
+    /// set them, then compute().
+    alignas(64) float x0[Batch], y0[Batch];
+    /// The zero weights at the start and end of x's rows, then of y's, and whether all those
+    /// counted so far were zero.
+    alignas(64) int zeros[4][Batch], all_zero[4][Batch];
+
+    explicit SplatWeights(const Filter &f)
+        : filter(f), b(f.border()), rows(2 * b + 1), wx(size_t(rows) * Batch, 1.f), wy(wx.size(), 1.f) {
+        std::fill_n(&zeros[0][0], 4 * Batch, 0);  // (the box: its one weight is 1)
+    }
+    /// Sample k's row start for a sample at pos taken in pixel (px, py).
+    void set(int k, int px, int py, Vec2 pos) {
+        x0[k] = float(px - b) + 0.5f - pos.x;
+        y0[k] = float(py - b) + 0.5f - pos.y;
+    }
+    /// The weights and zero counts of samples [0, n).
+    void compute(int n) {
+        if (b == 0) return;
+        filter.eval_rows(x0, n, rows, wx.data(), Batch);
+        filter.eval_rows(y0, n, rows, wy.data(), Batch);
+        std::fill_n(&zeros[0][0], 4 * Batch, 0);
+        std::fill_n(&all_zero[0][0], 4 * Batch, 1);
+        for (int t = 0; t < b; ++t) {  // (a pass per offset)
+            const float *ends[4] = {&wx[size_t(t) * Batch], &wx[size_t(rows - 1 - t) * Batch],
+                                    &wy[size_t(t) * Batch], &wy[size_t(rows - 1 - t) * Batch]};
+            for (int e = 0; e < 4; ++e) {
+                const float *w = ends[e];
+                int *count = zeros[e], *all = all_zero[e];
+#pragma GCC ivdep
+                for (int k = 0; k < n; ++k) {
+                    all[k] &= int(w[k] == 0.f);
+                    count[k] += all[k];
+                }
+            }
+        }
+    }
+};
+
 /// The film of one render: a PixelSum per pixel of the requested rows, and the weighted sums
 /// of the samples' tangents when it splats dual numbers. A tile splats its samples into a
 /// Block of its own, covering the tile and the border its splats reach (its neighbours'
@@ -173,14 +223,11 @@ public:
         Footprint fp = footprint(px, py, pos);
         add(block, fp, fp.wx, fp.wy, 1, L);
     }
-    /// splat() with the sample's filter weights given, row weight i at wx[i * stride] and
-    /// column weight j at wy[j * stride] (Filter::eval_rows' layout), i, j < 2 border() + 1,
-    /// and how many of them are zero at either end (`lead`, `trail`: at most border()).
-    /// The pixels and their sums are splat()'s, up to zero weights.
+    /// splat() of sample k of `w`, taken in pixel (px, py): the same pixels and sums, up to
+    /// zero weights.
     template <typename S>
-    void splat(Block &block, int px, int py, const float *wx, const float *wy, size_t stride,
-               const int lead[2], const int trail[2], const S *L) const {
-        add(block, window(px, py, lead[0], trail[0], lead[1], trail[1]), wx, wy, stride, L);
+    void splat(Block &block, int px, int py, const SplatWeights &w, int k, const S *L) const {
+        add(block, window(px, py, w, k), &w.wx[size_t(k)], &w.wy[size_t(k)], SplatWeights::Batch, L);
     }
 
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
@@ -221,6 +268,21 @@ public:
             size_t row = image_.index(fp.x, fp.y + j);
             for (int i = fp.i0; i <= fp.i1; ++i) {
                 f(row + i, double(fp.wx[i + fp.b]) * double(fp.wy[j + fp.b]));
+            }
+        }
+    }
+
+    /// for_each_reached() of sample k of `w`, taken in pixel (px, py): the same pixels and
+    /// weights, up to zero weights.
+    template <typename F>
+    void for_each_reached(int px, int py, const SplatWeights &w, int k, F f) const {
+        const Window win = window(px, py, w, k);
+        const float *wx = &w.wx[size_t(k)], *wy = &w.wy[size_t(k)];
+        for (int j = win.j0; j <= win.j1; ++j) {
+            size_t row = image_.index(win.x, win.y + j);
+            for (int i = win.i0; i <= win.i1; ++i) {
+                f(row + i, double(wx[size_t(i + win.b) * SplatWeights::Batch]) *
+                               double(wy[size_t(j + win.b) * SplatWeights::Batch]));
             }
         }
     }
@@ -308,6 +370,10 @@ private:
         }
         return fp;
     }
+    /// The window of sample k of `w`, taken in pixel (px, py).
+    Window window(int px, int py, const SplatWeights &w, int k) const {
+        return window(px, py, w.zeros[0][k], w.zeros[1][k], w.zeros[2][k], w.zeros[3][k]);
+    }
     /// The window of a sample taken in pixel (px, py) whose weights start with `lead` zeros
     /// and end with `trail` (each at most border()) in x and in y, clipped to the film.
     Window window(int px, int py, int lead_x, int trail_x, int lead_y, int trail_y) const {
@@ -379,49 +445,21 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
     WavefrontSample batch[WavefrontBatch];
     Vec2 pos[WavefrontBatch];
     RGB<float> L[WavefrontBatch];
-    // The batch's filter weights, computed for all its samples at once (Filter::eval_rows:
-    // the gaussian's exponentials in SIMD lanes), in rows of WavefrontBatch.
-    const int b = camera.filter.border(), rows = 2 * b + 1;
-    std::vector<float> wx(size_t(rows) * WavefrontBatch, 1.f), wy(wx.size(), 1.f);  // (box: 1)
-    alignas(64) float x0[WavefrontBatch], y0[WavefrontBatch];
-    // Per sample, the zero weights at the start and end of its x and y rows, and whether all
-    // those counted so far were zero.
-    alignas(64) int zeros[4][WavefrontBatch] = {}, all_zero[4][WavefrontBatch];
+    // The batch's filter weights (SplatWeights: in SIMD lanes).
+    SplatWeights weights(camera.filter);
+    static_assert(SplatWeights::Batch == WavefrontBatch);
     int n = 0;
     uint64_t dropped = 0;
     auto flush = [&] {
         trace_wavefront(ctx, ws, cfg, camera, batch, n, pos, L);
-        if (b > 0) {
-            for (int k = 0; k < n; ++k) {  // (as Camera::splat_weights)
-                x0[k] = float(batch[k].px - b) + 0.5f - pos[k].x;
-                y0[k] = float(batch[k].py - b) + 0.5f - pos[k].y;
-            }
-            camera.filter.eval_rows(x0, n, rows, wx.data(), WavefrontBatch);
-            camera.filter.eval_rows(y0, n, rows, wy.data(), WavefrontBatch);
-            // How many weights are zero at either end of each row (at most b), a pass per offset.
-            std::fill_n(&zeros[0][0], 4 * WavefrontBatch, 0);
-            std::fill_n(&all_zero[0][0], 4 * WavefrontBatch, 1);
-            for (int t = 0; t < b; ++t) {
-                const float *ends[4] = {&wx[size_t(t) * WavefrontBatch], &wx[size_t(rows - 1 - t) * WavefrontBatch],
-                                        &wy[size_t(t) * WavefrontBatch], &wy[size_t(rows - 1 - t) * WavefrontBatch]};
-                for (int e = 0; e < 4; ++e) {
-                    const float *w = ends[e];
-                    int *count = zeros[e], *all = all_zero[e];
-#pragma GCC ivdep
-                    for (int k = 0; k < n; ++k) {
-                        all[k] &= int(w[k] == 0.f);
-                        count[k] += all[k];
-                    }
-                }
-            }
-        }
+        for (int k = 0; k < n; ++k) weights.set(k, batch[k].px, batch[k].py, pos[k]);
+        weights.compute(n);
         for (int k = 0; k < n; ++k) {
             if (!sample_is_finite(L[k])) {
                 ++dropped;
                 continue;
             }
-            const int lead[2] = {zeros[0][k], zeros[2][k]}, trail[2] = {zeros[1][k], zeros[3][k]};
-            film.splat(block, batch[k].px, batch[k].py, &wx[k], &wy[k], WavefrontBatch, lead, trail, &L[k]);
+            film.splat(block, batch[k].px, batch[k].py, weights, k, &L[k]);
         }
         n = 0;
     };
@@ -541,19 +579,22 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     Tiles tiles = tiles_of(camera);
     Film weights(camera, tiles, all);
     const bool independent = camera.sampler.type == SamplerType::Independent;
-    constexpr int Chunk = 256;  // (the independent sampler's positions, a chunk at a time)
+    // (The independent sampler's positions a chunk at a time, and their filter weights.)
+    constexpr int Chunk = SplatWeights::Batch;
     for_each_tile(tiles, all, pool, [&](int tx, int ty) {
         Film::Block block = weights.block(tx, ty);
         uint64_t stream[Chunk], index[Chunk];
         float u0[Chunk], u1[Chunk];
+        SplatWeights chunk(camera.filter);
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
             PixelSeed seed(req.seed, key);
             for (int s0 = 0; independent && s0 < req.spp; s0 += Chunk) {
                 int n = std::min(Chunk, req.spp - s0);
                 for (int k = 0; k < n; ++k) stream[k] = seed.stream, index[k] = uint64_t(s0 + k);
                 independent_first_2d(n, stream, index, u0, u1);
-                for (int k = 0; k < n; ++k)
-                    weights.splat<RGB<T>>(block, px, py, Vec2{float(px) + u0[k], float(py) + u1[k]}, nullptr);
+                for (int k = 0; k < n; ++k) chunk.set(k, px, py, Vec2{float(px) + u0[k], float(py) + u1[k]});
+                chunk.compute(n);
+                for (int k = 0; k < n; ++k) weights.splat<RGB<T>>(block, px, py, chunk, k, nullptr);
             }
             for (int s = 0; !independent && s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
@@ -570,6 +611,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     auto gather = [&](int px, int py, Vec2 pos) {
         RGB<double> dL;
         weights.for_each_reached(px, py, pos, [&](size_t i, double w) { dL += scaled[i] * w; });
+        return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
+    };
+    // (Sample k of a batch of weights.)
+    auto gather_batch = [&](int px, int py, const SplatWeights &w, int k) {
+        RGB<double> dL;
+        weights.for_each_reached(px, py, w, k, [&](size_t i, double wi) { dL += scaled[i] * wi; });
         return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
     };
 
@@ -724,6 +771,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         std::vector<PixelSeed> tile_seeds;
         std::vector<uint64_t> tile_streams, tile_index;
         std::vector<float> tile_u0, tile_u1;
+        SplatWeights tile_weights(camera.filter);
         int seeds_of = -1;
         for (int64_t unit = w; unit < n_units; unit += n_workers) {
             int tile = int(unit / req.spp), s = int(unit % req.spp);
@@ -741,13 +789,25 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 independent_first_2d(int(tile_seeds.size()), tile_streams.data(), tile_index.data(), tile_u0.data(),
                                      tile_u1.data());
             }
+            // Their filter weights at once, where the tile's pixels fit a batch (they do but
+            // under filters wider than 8 pixels, whose tiles are larger).
+            const bool batched = lanes_ctx && tile_seeds.size() <= size_t(SplatWeights::Batch);
+            if (batched) {
+                size_t pixel = 0;
+                for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx, [&](int px, int py, uint64_t) {
+                    const size_t i = pixel++;
+                    tile_weights.set(int(i), px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
+                });
+                tile_weights.compute(int(pixel));
+            }
             size_t pixel = 0;
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t) {
                 const size_t i = pixel++;
                 const PixelSeed &seed = tile_seeds[i];
                 if (lanes_ctx) {
-                    RGB<T> dL = gather(px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
+                    RGB<T> dL = batched ? gather_batch(px, py, tile_weights, int(i))
+                                        : gather(px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
                     if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
                     batch[n_batch] = {px, py, seed, s};
                     adjoints[n_batch++] = dL;

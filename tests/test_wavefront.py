@@ -525,3 +525,26 @@ def test16_filter_weights_of_a_batch_are_the_scalar_splats(tmp_path, monkeypatch
     d["sensor"]["film"].update(crop_offset_x=3, crop_offset_y=2, crop_width=11, crop_height=7)
     wavefront, scalar = render_both(tr.load_dict(d), monkeypatch, spp=5, seed=2)
     assert wavefront.shape[:2] == (7, 11) and torch.equal(wavefront, scalar)
+
+
+@pytest.mark.parametrize("rfilter", [
+    {"type": "gaussian"}, {"type": "mitchell"}, {"type": "lanczos", "lobes": 2}, {"type": "gaussian", "stddev": 4.0}])
+def test17_backward_in_lanes_with_batched_filter_weights(tmp_path, monkeypatch, rfilter):
+    # The backward pass sums its samples' filter weights and gathers their adjoints with
+    # weights computed a batch at once (SplatWeights; a tile's pixels at a time, but for
+    # filters wider than 8 pixels, whose tiles exceed a batch: the last case); its gradients
+    # in lanes must be the tape's, which gathers sample by sample, also under a crop window.
+    d = room_dict(tmp_path)
+    d["sensor"]["film"]["rfilter"] = rfilter
+    assert_lanes_give_the_tapes_gradients(tr.load_dict(d), ["floor.bsdf.reflectance.value"], monkeypatch)
+    d["sensor"]["film"].update(crop_offset_x=3, crop_offset_y=2, crop_width=11, crop_height=7)
+    scene = tr.load_dict(d)
+    key = "floor.bsdf.reflectance.value"
+    grads, lanes, taped = backward(scene, [key])
+    assert lanes == 11 * 7 * 8 and taped == 0
+    with monkeypatch.context() as m:
+        m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+        tape_grads, _, _ = backward(scene, [key])
+    scale = float(tape_grads[key].abs().max())
+    assert scale > 0
+    torch.testing.assert_close(grads[key], tape_grads[key], rtol=1e-4, atol=1e-5 * scale)
