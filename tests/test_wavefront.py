@@ -548,3 +548,29 @@ def test17_backward_in_lanes_with_batched_filter_weights(tmp_path, monkeypatch, 
     scale = float(tape_grads[key].abs().max())
     assert scale > 0
     torch.testing.assert_close(grads[key], tape_grads[key], rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("bitmap", [
+    {"wrap_mode": "clamp", "to_uv": tr.Transform.translate([-0.3, 0.2, 0]).scale([1.7, 2.2, 1])},
+    {"wrap_mode": "repeat"}, {"wrap_mode": "mirror", "filter_type": "nearest"},
+    {"gray": True, "wrap_mode": "mirror", "to_uv": tr.Transform.scale([-3.5, 2.5, 1])},
+    {"to_uv": tr.Transform.scale([3e8, 3e8, 1])}])
+def test18_bitmap_reflectances_in_the_wavefront(tmp_path, monkeypatch, bitmap):
+    # Bitmap reflectances (every wrap mode, bilinear and nearest, to_uv, one or three
+    # channels, texel coordinates beyond 2^20) under the wavefront: the image is the scalar
+    # integrator's bit for bit, and the backward pass in lanes, which logs the texels each
+    # vertex reads, gives the tape's gradients.
+    bitmap = dict(bitmap)
+    channels = 1 if bitmap.pop("gray", False) else 3
+    texels = torch.from_numpy(np.random.default_rng(4).uniform(0.05, 0.95, (6, 5, channels)).astype(np.float32))
+    tr.write_image(tmp_path / "t.exr", texels)
+    d = room_dict(tmp_path, {"max_depth": 4})
+    d["floor"]["bsdf"] = {"type": "diffuse", "reflectance": {"type": "bitmap", "filename": str(tmp_path / "t.exr"), **bitmap}}
+    d["back"]["bsdf"] = {"type": "twosided", "bsdf": d["floor"]["bsdf"]}
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=6, seed=7)
+    assert float(scalar.mean()) > 0.01
+    assert torch.equal(wavefront, scalar)
+    keys = [k for k in scene._keys if k.endswith("reflectance.data")]
+    assert keys
+    assert_lanes_give_the_tapes_gradients(scene, keys[:1], monkeypatch, spp=4)
