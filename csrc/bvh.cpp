@@ -718,6 +718,36 @@ void BVH::flat_rounding_check(const FlatRays &q, int n) const {
     for (int k = 0; k < n; ++k) q_best[k] = q_best[k] != ~0u ? flat_prims_[q_best[k]] : ~0u;
 }
 
+/// intersect_sphere() for rays list[0, m) of `r`, lane by lane (its swap and tests as
+/// selects, its operations in double as it does them): hit[j] 1 or 0, and t[j].
+void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
+                      float *t_out, float *hit_out) {
+    const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_dx = r.dx, *q_dy = r.dy, *q_dz = r.dz;
+    const float *q_tmin = r.tmin, *q_tmax = r.tmax;
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const int k = list[j];
+        double ox = double(q_ox[k]) - center.x, oy = double(q_oy[k]) - center.y, oz = double(q_oz[k]) - center.z;
+        double dx = q_dx[k], dy = q_dy[k], dz = q_dz[k];
+        double A = dx * dx + dy * dy + dz * dz;
+        double B = 2.0 * (ox * dx + oy * dy + oz * dz);
+        double C = ox * ox + oy * oy + oz * oz - double(radius) * radius;
+        double disc = B * B - 4.0 * A * C;
+        double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+        double t0 = q / A, t1 = q != 0.0 ? C / q : t0;
+        double lo = t0 > t1 ? t1 : t0, hi = t0 > t1 ? t0 : t1;
+        double tmin = q_tmin[k], tmax = q_tmax[k];
+        // (Float flags narrowed by selects: GCC does not vectorise && here.)
+        float hit0 = lo > tmin ? 1.f : 0.f;
+        hit0 = lo < tmax ? hit0 : 0.f;
+        float hit1 = hi > tmin ? 1.f : 0.f;
+        hit1 = hi < tmax ? hit1 : 0.f;
+        float hit = hit0 != 0.f ? 1.f : hit1;
+        hit_out[j] = disc < 0.0 ? 0.f : hit;
+        t_out[j] = hit0 != 0.f ? float(lo) : float(hi);
+    }
+}
+
 void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
     auto trace = [&](int k) {
         Ray ray;
@@ -776,8 +806,9 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
         for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), rays, n);
     }
     // Each sphere against the rays whose line passes near it (a generous float test; the
-    // hit itself is intersect_sphere()'s, in double).
-    alignas(64) float near[MaxColumns];
+    // hit itself is intersect_sphere()'s, in double, for those rays in lanes).
+    alignas(64) float near[MaxColumns], sphere_t[MaxColumns], sphere_hit[MaxColumns];
+    alignas(64) int near_list[MaxColumns];
     for (uint32_t prim : flat_spheres_) {
         const Shape &s = geometry_->analytic_shape(prim);
         const Vec3 c = s.center;
@@ -791,13 +822,17 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             float reach = radius + 1e-3f * (radius + norm(oc));
             near[k] = squared_norm(closest) > reach * reach ? 0.f : 1.f;
         }
+        // The near rays listed (branch-free), tested in lanes, their hits kept in order.
+        int m = 0;
         for (int k = 0; k < n; ++k) {
-            if (near[k] == 0.f) continue;
-            Ray ray;
-            ray.o = {r.ox[k], r.oy[k], r.oz[k]};
-            ray.d = {r.dx[k], r.dy[k], r.dz[k]};
-            float t;
-            if (!intersect_sphere(ray, s.center, s.radius, r.tmin[k], r.tmax[k], &t)) continue;
+            near_list[m] = k;
+            m += near[k] != 0.f ? 1 : 0;
+        }
+        flat_sphere(s.center, s.radius, r, near_list, m, sphere_t, sphere_hit);
+        for (int j = 0; j < m; ++j) {
+            if (sphere_hit[j] == 0.f) continue;
+            const int k = near_list[j];
+            const float t = sphere_t[j];
             if (t == best_t[k]) retrace[k] = 1.f;
             if (t < best_t[k]) best_t[k] = t, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = prim;
         }

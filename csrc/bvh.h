@@ -114,6 +114,8 @@ private:
     template <int G, bool Deferred>
     static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);
     void flat_rounding_check(const FlatRays &rays, int n) const;
+    static void flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
+                            float *t, float *hit);
     std::vector<uint32_t> flat_spheres_;
 
     const Geometry *geometry_ = nullptr;
