@@ -363,7 +363,6 @@ void BVH::build(const Geometry &geometry) {
 
     // A small tree of triangles and spheres is also kept flat (intersect_columns()).
     flat_triangles_.clear();
-    flat_prims_.clear();
     flat_coords_.clear();
     flat_spheres_.clear();
     bool flat = nodes_.size() == 1;
@@ -382,7 +381,6 @@ void BVH::build(const Geometry &geometry) {
                         for (int axis = 0; axis < 3; ++axis) t.v[k][axis] = pack.tris.v[k][axis][lane];
                     t.prim = pack.prim[lane];
                     flat_triangles_.push_back(t);
-                    flat_prims_.push_back(t.prim);
                 }
                 if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
             }
@@ -687,7 +685,7 @@ void BVH::flat_rounding_check(const FlatRays &q, int n) const {
     float *q_retrace = q.retrace;
     const float *q_best_t = q.best_t;
     uint32_t *q_best = q.best;
-    const int stride = int(flat_prims_.size());
+    const int stride = int(flat_triangles_.size());
     const float *coords = flat_coords_.data();
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -715,11 +713,11 @@ void BVH::flat_rounding_check(const FlatRays &q, int n) const {
     }
     // The triangles' primitives (apart: with this gather in the loop above, GCC does not
     // vectorise that for AVX2).
-    for (int k = 0; k < n; ++k) q_best[k] = q_best[k] != ~0u ? flat_prims_[q_best[k]] : ~0u;
+    for (int k = 0; k < n; ++k) q_best[k] = q_best[k] != ~0u ? flat_triangles_[q_best[k]].prim : ~0u;
 }
 
-/// intersect_sphere() for rays list[0, m) of `r`, lane by lane (its swap and tests as
-/// selects, its operations in double as it does them): hit[j] 1 or 0, and t[j].
+/// intersect_sphere() for rays list[0, m) of `r`, lane by lane (SphereQuadratic, then its
+/// tests as selects): hit[j] 1 or 0, and t[j].
 void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
                       float *t_out, float *hit_out) {
     const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_dx = r.dx, *q_dy = r.dy, *q_dz = r.dz;
@@ -727,23 +725,17 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const int k = list[j];
-        double ox = double(q_ox[k]) - center.x, oy = double(q_oy[k]) - center.y, oz = double(q_oz[k]) - center.z;
-        double dx = q_dx[k], dy = q_dy[k], dz = q_dz[k];
-        double A = dx * dx + dy * dy + dz * dz;
-        double B = 2.0 * (ox * dx + oy * dy + oz * dz);
-        double C = ox * ox + oy * oy + oz * oz - double(radius) * radius;
-        double disc = B * B - 4.0 * A * C;
-        double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
-        double t0 = q / A, t1 = q != 0.0 ? C / q : t0;
-        double lo = t0 > t1 ? t1 : t0, hi = t0 > t1 ? t0 : t1;
-        double tmin = q_tmin[k], tmax = q_tmax[k];
+        const SphereQuadratic quadratic({q_ox[k], q_oy[k], q_oz[k]}, {q_dx[k], q_dy[k], q_dz[k]}, center, radius);
+        double lo, hi;
+        quadratic.roots(&lo, &hi);
+        const double tmin = q_tmin[k], tmax = q_tmax[k];
         // (Float flags narrowed by selects: GCC does not vectorise && here.)
         float hit0 = lo > tmin ? 1.f : 0.f;
         hit0 = lo < tmax ? hit0 : 0.f;
         float hit1 = hi > tmin ? 1.f : 0.f;
         hit1 = hi < tmax ? hit1 : 0.f;
         float hit = hit0 != 0.f ? 1.f : hit1;
-        hit_out[j] = disc < 0.0 ? 0.f : hit;
+        hit_out[j] = quadratic.disc < 0.0 ? 0.f : hit;
         t_out[j] = hit0 != 0.f ? float(lo) : float(hi);
     }
 }

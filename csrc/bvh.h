@@ -108,8 +108,7 @@ private:
         uint32_t prim;
     };
     std::vector<FlatTriangle> flat_triangles_;
-    std::vector<uint32_t> flat_prims_;  ///< flat_triangles_' ids
-    std::vector<float> flat_coords_;    ///< their vertices, [vertex][axis][triangle]
+    std::vector<float> flat_coords_;  ///< their vertices, [vertex][axis][triangle]
     struct FlatRays;
     template <int G, bool Deferred>
     static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);

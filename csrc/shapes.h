@@ -248,22 +248,37 @@ inline int intersect_triangles(const RayPrecompPack &pc, const TrianglePack &pac
     return hit;
 }
 
+/// The ray-sphere quadratic A t^2 + B t + C in double precision, its discriminant, and (roots())
+/// its roots in order (NaN where the discriminant is negative). Branch-free, so that
+/// BVH::flat_sphere's lanes and intersect_sphere() share it.
+struct SphereQuadratic {
+    double A, B, C, disc;
+    RBPT_INLINE SphereQuadratic(const Vec3 &o, const Vec3 &d, const Vec3 &center, float radius) {
+        double ox = double(o.x) - center.x, oy = double(o.y) - center.y, oz = double(o.z) - center.z;
+        double dx = d.x, dy = d.y, dz = d.z;
+        A = dx * dx + dy * dy + dz * dz;
+        B = 2.0 * (ox * dx + oy * dy + oz * dz);
+        C = ox * ox + oy * oy + oz * oz - double(radius) * radius;
+        disc = B * B - 4.0 * A * C;
+    }
+    /// The roots (lo, hi).
+    RBPT_INLINE void roots(double *lo, double *hi) const {
+        double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+        double t0 = q / A, t1 = (q != 0.0) ? C / q : t0;
+        *lo = t0 > t1 ? t1 : t0;
+        *hi = t0 > t1 ? t0 : t1;
+    }
+};
+
 /// Ray-sphere intersection in double precision; the nearest root in (tmin, tmax).
 inline bool intersect_sphere(const Ray &ray, const Vec3 &center, float radius, float tmin,
                              float tmax, float *t_out) {
-    double ox = double(ray.o.x) - center.x, oy = double(ray.o.y) - center.y,
-           oz = double(ray.o.z) - center.z;
-    double dx = ray.d.x, dy = ray.d.y, dz = ray.d.z;
-    double A = dx * dx + dy * dy + dz * dz;
-    double B = 2.0 * (ox * dx + oy * dy + oz * dz);
-    double C = ox * ox + oy * oy + oz * oz - double(radius) * radius;
-    double disc = B * B - 4.0 * A * C;
-    if (disc < 0.0) return false;
-    double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
-    double t0 = q / A, t1 = (q != 0.0) ? C / q : t0;
-    if (t0 > t1) std::swap(t0, t1);
-    if (t0 > tmin && t0 < tmax) { *t_out = float(t0); return true; }
-    if (t1 > tmin && t1 < tmax) { *t_out = float(t1); return true; }
+    const SphereQuadratic quadratic(ray.o, ray.d, center, radius);
+    if (quadratic.disc < 0.0) return false;
+    double lo, hi;
+    quadratic.roots(&lo, &hi);
+    if (lo > tmin && lo < tmax) { *t_out = float(lo); return true; }
+    if (hi > tmin && hi < tmax) { *t_out = float(hi); return true; }
     return false;
 }
 
