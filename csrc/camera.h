@@ -133,10 +133,12 @@ struct Camera {
             wx[0] = wy[0] = 1.f;
             return;
         }
-        // Pixel px + k has its centre at px + k + 0.5; the offsets grow by 1 along the row.
-        filter.eval_row(float(px - b) + 0.5f - pos.x, 2 * b + 1, wx);
-        filter.eval_row(float(py - b) + 0.5f - pos.y, 2 * b + 1, wy);
+        filter.eval_row(splat_row_start(px, b, pos.x), 2 * b + 1, wx);
+        filter.eval_row(splat_row_start(py, b, pos.y), 2 * b + 1, wy);
     }
+    /// The first offset of a splat's row: pixel p + k has its centre at p + k + 0.5, and the
+    /// offsets from the sample at `pos` grow by 1 along the row, from k = -b.
+    static float splat_row_start(int p, int b, float pos) { return float(p - b) + 0.5f - pos; }
 };
 
 }  // namespace rbpt

@@ -134,8 +134,7 @@ struct SplatWeights {
     const Filter &filter;
     const int b, rows;
     std::vector<float> wx, wy;
-    /// Each sample's row start, float(px - b) + 0.5 - pos.x (Camera::splat_weights), and y's:
-    /// set them, then compute().
+    /// Each sample's row starts in x and y (Camera::splat_row_start): set them, then compute().
     alignas(64) float x0[Batch], y0[Batch];
     /// The zero weights at the start and end of x's rows, then of y's, and whether all those
     /// counted so far were zero.
@@ -147,8 +146,8 @@ struct SplatWeights {
     }
     /// Sample k's row start for a sample at pos taken in pixel (px, py).
     void set(int k, int px, int py, Vec2 pos) {
-        x0[k] = float(px - b) + 0.5f - pos.x;
-        y0[k] = float(py - b) + 0.5f - pos.y;
+        x0[k] = Camera::splat_row_start(px, b, pos.x);
+        y0[k] = Camera::splat_row_start(py, b, pos.y);
     }
     /// The weights and zero counts of samples [0, n).
     void compute(int n) {
@@ -264,27 +263,14 @@ public:
     template <typename F>
     void for_each_reached(int px, int py, Vec2 pos, F f) const {
         Footprint fp = footprint(px, py, pos);
-        for (int j = fp.j0; j <= fp.j1; ++j) {
-            size_t row = image_.index(fp.x, fp.y + j);
-            for (int i = fp.i0; i <= fp.i1; ++i) {
-                f(row + i, double(fp.wx[i + fp.b]) * double(fp.wy[j + fp.b]));
-            }
-        }
+        for_each_in(fp, fp.wx, fp.wy, 1, f);
     }
 
     /// for_each_reached() of sample k of `w`, taken in pixel (px, py): the same pixels and
     /// weights, up to zero weights.
     template <typename F>
     void for_each_reached(int px, int py, const SplatWeights &w, int k, F f) const {
-        const Window win = window(px, py, w, k);
-        const float *wx = &w.wx[size_t(k)], *wy = &w.wy[size_t(k)];
-        for (int j = win.j0; j <= win.j1; ++j) {
-            size_t row = image_.index(win.x, win.y + j);
-            for (int i = win.i0; i <= win.i1; ++i) {
-                f(row + i, double(wx[size_t(i + win.b) * SplatWeights::Batch]) *
-                               double(wy[size_t(j + win.b) * SplatWeights::Batch]));
-            }
-        }
+        for_each_in(window(px, py, w, k), &w.wx[size_t(k)], &w.wy[size_t(k)], SplatWeights::Batch, f);
     }
 
     /// Pixel i (row-major over the requested rows).
@@ -386,6 +372,17 @@ private:
         win.j0 = std::max(lead_y - win.b, rows_.begin - win.y);
         win.j1 = std::min(win.b - trail_y, rows_.end - 1 - win.y);
         return win;
+    }
+
+    /// f(i, w) for each pixel i of a window (row-major over the film's rows), with its weight
+    /// w from wx[(i + b) * stride] and wy[(j + b) * stride].
+    template <typename F>
+    void for_each_in(const Window &win, const float *wx, const float *wy, size_t stride, F f) const {
+        for (int j = win.j0; j <= win.j1; ++j) {
+            size_t row = image_.index(win.x, win.y + j);
+            for (int i = win.i0; i <= win.i1; ++i)
+                f(row + i, double(wx[size_t(i + win.b) * stride]) * double(wy[size_t(j + win.b) * stride]));
+        }
     }
 
     /// Add a sample's weighted value (and weight) into the pixels of its window, its weights
@@ -608,15 +605,10 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     std::vector<RGB<double>> scaled(n_pixels);  // adjoint_p / W_p
     for (size_t i = 0; i < n_pixels; ++i)
         for (int c = 0; c < 3; ++c) scaled[i][c] = safe_div(double(adjoint[3 * i + c]), weights[i].weight);
-    auto gather = [&](int px, int py, Vec2 pos) {
+    // (The sample at pos, or sample k of a batch of weights.)
+    auto gather = [&](int px, int py, auto &&...sample) {
         RGB<double> dL;
-        weights.for_each_reached(px, py, pos, [&](size_t i, double w) { dL += scaled[i] * w; });
-        return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
-    };
-    // (Sample k of a batch of weights.)
-    auto gather_batch = [&](int px, int py, const SplatWeights &w, int k) {
-        RGB<double> dL;
-        weights.for_each_reached(px, py, w, k, [&](size_t i, double wi) { dL += scaled[i] * wi; });
+        weights.for_each_reached(px, py, sample..., [&](size_t i, double w) { dL += scaled[i] * w; });
         return RGB<T>(T(dL[0]), T(dL[1]), T(dL[2]));
     };
 
@@ -806,7 +798,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 const size_t i = pixel++;
                 const PixelSeed &seed = tile_seeds[i];
                 if (lanes_ctx) {
-                    RGB<T> dL = batched ? gather_batch(px, py, tile_weights, int(i))
+                    RGB<T> dL = batched ? gather(px, py, tile_weights, int(i))
                                         : gather(px, py, Vec2{float(px) + tile_u0[i], float(py) + tile_u1[i]});
                     if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
                     batch[n_batch] = {px, py, seed, s};
