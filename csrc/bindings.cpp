@@ -559,22 +559,56 @@ py::tuple intersect_rays(const Scene &scene, torch::Tensor origins, torch::Tenso
     return py::make_tuple(t, shape);
 }
 
-/// Whether each ray, given as it is, is blocked in its interval (BVH::occluded; for tests).
-torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
-                            torch::Tensor tmin, torch::Tensor tmax) {
-    int64_t n = ray_batch(origins, directions);
-    tmin = tmin.to(torch::kFloat32).contiguous();
-    tmax = tmax.to(torch::kFloat32).contiguous();
-    if (tmin.numel() != n || tmax.numel() != n) fail("tmin and tmax must have one entry per ray");
-    torch::Tensor blocked = torch::empty({n}, torch::kBool);
-    const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
-    for (int64_t i = 0; i < n; ++i) {
-        Ray ray;
-        ray.o = {o[3 * i], o[3 * i + 1], o[3 * i + 2]};
-        ray.d = {d[3 * i], d[3 * i + 1], d[3 * i + 2]};
-        ray.tmin = tmin.data_ptr<float>()[i], ray.tmax = tmax.data_ptr<float>()[i];
-        blocked.data_ptr<bool>()[i] = scene.bvh.occluded(ray);
+/// Rays given as they are (origins and directions (N, 3), intervals (N,)), as the eight
+/// columns of RayColumns (for tests).
+struct TestRays {
+    int64_t n = 0;
+    std::vector<float> c[8];
+    TestRays(torch::Tensor origins, torch::Tensor directions, torch::Tensor tmin, torch::Tensor tmax) {
+        n = ray_batch(origins, directions);
+        tmin = tmin.to(torch::kFloat32).contiguous();
+        tmax = tmax.to(torch::kFloat32).contiguous();
+        if (tmin.numel() != n || tmax.numel() != n) fail("tmin and tmax must have one entry per ray");
+        for (int a = 0; a < 3; ++a) {
+            for (int64_t i = 0; i < n; ++i) {
+                c[a].push_back(origins.data_ptr<float>()[3 * i + a]);
+                c[3 + a].push_back(directions.data_ptr<float>()[3 * i + a]);
+            }
+        }
+        c[6].assign(tmin.data_ptr<float>(), tmin.data_ptr<float>() + n);
+        c[7].assign(tmax.data_ptr<float>(), tmax.data_ptr<float>() + n);
     }
+    /// The columns from ray `first` on.
+    RayColumns from(int64_t first) const {
+        return {c[0].data() + first, c[1].data() + first, c[2].data() + first, c[3].data() + first,
+                c[4].data() + first, c[5].data() + first, c[6].data() + first, c[7].data() + first};
+    }
+    Ray ray(int64_t i) const {
+        Ray r;
+        r.o = {c[0][size_t(i)], c[1][size_t(i)], c[2][size_t(i)]};
+        r.d = {c[3][size_t(i)], c[4][size_t(i)], c[5][size_t(i)]};
+        r.tmin = c[6][size_t(i)], r.tmax = c[7][size_t(i)];
+        return r;
+    }
+};
+
+/// Whether each ray, given as it is, is blocked in its interval (for tests): from
+/// BVH::occluded per ray, or from BVH::occluded_columns in batches of BVH::MaxColumns
+/// (`columns`).
+torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
+                            torch::Tensor tmin, torch::Tensor tmax, bool columns) {
+    const TestRays rays(origins, directions, tmin, tmax);
+    torch::Tensor blocked = torch::empty({rays.n}, torch::kBool);
+    std::vector<int> flags(size_t(rays.n));
+    for (int64_t b = 0; b < rays.n; b += BVH::MaxColumns) {
+        int m = int(std::min<int64_t>(BVH::MaxColumns, rays.n - b));
+        if (columns) {
+            scene.bvh.occluded_columns(rays.from(b), m, flags.data() + b);
+            continue;
+        }
+        for (int k = 0; k < m; ++k) flags[size_t(b + k)] = scene.bvh.occluded(rays.ray(b + k));
+    }
+    for (int64_t i = 0; i < rays.n; ++i) blocked.data_ptr<bool>()[i] = flags[size_t(i)] != 0;
     return blocked;
 }
 
@@ -583,19 +617,8 @@ torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Te
 /// BVH::intersect_columns in batches of BVH::MaxColumns (`columns`).
 py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
                        torch::Tensor tmin, torch::Tensor tmax, bool columns) {
-    int64_t n = ray_batch(origins, directions);
-    tmin = tmin.to(torch::kFloat32).contiguous();
-    tmax = tmax.to(torch::kFloat32).contiguous();
-    if (tmin.numel() != n || tmax.numel() != n) fail("tmin and tmax must have one entry per ray");
-    std::vector<float> c[8];
-    for (int a = 0; a < 3; ++a) {
-        for (int64_t i = 0; i < n; ++i) {
-            c[a].push_back(origins.data_ptr<float>()[3 * i + a]);
-            c[3 + a].push_back(directions.data_ptr<float>()[3 * i + a]);
-        }
-    }
-    c[6].assign(tmin.data_ptr<float>(), tmin.data_ptr<float>() + n);
-    c[7].assign(tmax.data_ptr<float>(), tmax.data_ptr<float>() + n);
+    const TestRays rays(origins, directions, tmin, tmax);
+    const int64_t n = rays.n;
     torch::Tensor t = torch::empty({n}, torch::kFloat32), u = torch::empty({n}, torch::kFloat32),
                   v = torch::empty({n}, torch::kFloat32), prim = torch::empty({n}, torch::kInt64);
     std::vector<uint32_t> ids(static_cast<size_t>(n));
@@ -603,18 +626,12 @@ py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor 
         int m = int(std::min<int64_t>(BVH::MaxColumns, n - b));
         HitColumns hits{t.data_ptr<float>() + b, u.data_ptr<float>() + b, v.data_ptr<float>() + b, ids.data() + b};
         if (columns) {
-            scene.bvh.intersect_columns({c[0].data() + b, c[1].data() + b, c[2].data() + b, c[3].data() + b,
-                                         c[4].data() + b, c[5].data() + b, c[6].data() + b, c[7].data() + b},
-                                        m, hits);
+            scene.bvh.intersect_columns(rays.from(b), m, hits);
             continue;
         }
         for (int k = 0; k < m; ++k) {
-            Ray ray;
-            ray.o = {c[0][b + k], c[1][b + k], c[2][b + k]};
-            ray.d = {c[3][b + k], c[4][b + k], c[5][b + k]};
-            ray.tmin = c[6][b + k], ray.tmax = c[7][b + k];
             Hit hit;
-            scene.bvh.intersect(ray, &hit);
+            scene.bvh.intersect(rays.ray(b + k), &hit);
             hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
         }
     }

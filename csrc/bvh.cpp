@@ -838,6 +838,23 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
     }
 }
 
+void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
+    if (flat()) {
+        alignas(64) float t[MaxColumns], u[MaxColumns], v[MaxColumns];
+        alignas(64) uint32_t prim[MaxColumns];
+        intersect_columns(r, n, {t, u, v, prim});
+        for (int k = 0; k < n; ++k) blocked[k] = prim[k] != ~0u;
+        return;
+    }
+    for (int k = 0; k < n; ++k) {
+        Ray ray;
+        ray.o = {r.ox[k], r.oy[k], r.oz[k]};
+        ray.d = {r.dx[k], r.dy[k], r.dz[k]};
+        ray.tmin = r.tmin[k], ray.tmax = r.tmax[k];
+        blocked[k] = occluded(ray);
+    }
+}
+
 bool BVH::occluded(const Ray &ray) const {
     Hit unused;
     return traverse<true>(ray, &unused);

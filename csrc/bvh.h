@@ -84,6 +84,11 @@ public:
     /// slower (session 25), so it is left so; both hits are valid to within a rounding, and
     /// the results are deterministic.
     void intersect_columns(const RayColumns &rays, int n, const HitColumns &hits) const;
+    /// Whether each of rays[0, n) (n <= MaxColumns) is blocked, as occluded() decides:
+    /// blocked[k] 1 or 0. A flat BVH finds the nearest hits in lanes (intersect_columns;
+    /// faster than occluded() where the rays pass near spheres, whose exact test is in
+    /// double, as a sphere light's shadow rays do); otherwise occluded() for each ray.
+    void occluded_columns(const RayColumns &rays, int n, int *blocked) const;
     /// Whether the tree is one node over at most FlatTriangles triangles and FlatSpheres
     /// spheres and nothing else (a small scene), whose rays intersect_columns() tests in
     /// SIMD lanes: most of a ray's traversal there is per-ray set-up and branches, for one

@@ -707,6 +707,24 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     }
 }
 
+/// The shadow rays of lanes [0, n) marked `shadow`, in SIMD lanes (BVH::occluded_columns):
+/// `shadow` stays 1 where nothing blocks the ray.
+__attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &bvh) {
+    alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B];
+    alignas(64) int lane[B], blocked[B];
+    int m = 0;
+    for (int k = 0; k < n; ++k) {
+        if (!b.shadow[k]) continue;
+        ox[m] = b.sox[k], oy[m] = b.soy[k], oz[m] = b.soz[k];
+        dx[m] = b.sdx[k], dy[m] = b.sdy[k], dz[m] = b.sdz[k];
+        tmin[m] = 0.f, tmax[m] = b.stmax[k];
+        lane[m++] = k;
+    }
+    bvh.occluded_columns({ox, oy, oz, dx, dy, dz, tmin, tmax}, m, blocked);
+    rays_traced += uint64_t(m);
+    for (int j = 0; j < m; ++j) b.shadow[lane[j]] = !blocked[j];
+}
+
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
@@ -1351,7 +1369,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.alive[k] = side.alive[i];
             b.shadow[k] = 0;
         }
-        // Shadow rays; then the paths that ended hand back their radiance, the rest move up.
+        // Shadow rays: in lanes in a small scene with sphere lights (each ray ends on a sphere,
+        // whose exact test is in double: veach-mis 117 -> 103 ms), else one at a time (with only
+        // triangles near the rays the traversal is faster: glossy +2-3% in lanes). Then the
+        // paths that ended hand back their radiance, the rest move up.
+        const bool shadow_lanes = ws.any_sphere_lights && scene.bvh.flat();
+        if (shadow_lanes) shadow_rays_in_lanes(b, n, scene.bvh);
         int live = 0;
         for (int k = 0; k < n; ++k) {
             if (b.shadow[k]) {
@@ -1359,7 +1382,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 ray.o = {b.sox[k], b.soy[k], b.soz[k]};
                 ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
                 ray.tmax = b.stmax[k];
-                if (!scene.occluded(ray)) {
+                if (shadow_lanes || !scene.occluded(ray)) {
                     b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
                     const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
                     if (log && b.record_rough[k] >= 0) {

@@ -229,7 +229,8 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     # Shadow rays (BVH::occluded, which stops at the first hit) are blocked exactly where the
     # nearest hit lies inside their interval: rays towards points on the spheres stopping
     # short by the shadow epsilon (as towards a sphere light), rays from inside, from the
-    # surfaces, and with random and unbounded intervals.
+    # surfaces, and with random and unbounded intervals. The same in lanes (occluded_columns,
+    # which the wavefront's shadow rays take in small scenes with sphere lights).
     centers = np.array([[0.0, 0.0, 0.0], [1.5, 0.2, 0.0], [-1.0, 1.0, 0.5], [0.3, -1.2, 1.0]])
     radii = np.array([0.5, 0.3, 0.05, 0.8])
     scene = tr.load_dict({"type": "scene", **{f"s{i}": {"type": "sphere", "center": c.tolist(), "radius": float(r)}
@@ -256,7 +257,8 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     o[m:m + 1000] = target[m:m + 1000]  # on a surface
     o[m + 1000:m + 2000] = centers[which[m + 1000:m + 2000]] + normal[m + 1000:m + 2000] * radii[which[m + 1000:m + 2000], None] * 0.5
     rays = [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
-    blocked = tr._C.occluded_rays(scene._native, *rays)
+    blocked = tr._C.occluded_rays(scene._native, *rays, False)
     hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
     assert 500 < int(blocked.sum()) < n - 500
     assert torch.equal(blocked, hit)
+    assert torch.equal(tr._C.occluded_rays(scene._native, *rays, True), blocked)
