@@ -799,8 +799,8 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
     }
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double, for those rays in lanes).
-    alignas(64) float near[MaxColumns], sphere_t[MaxColumns], sphere_hit[MaxColumns];
-    alignas(64) int near_list[MaxColumns];
+    alignas(64) float sphere_t[MaxColumns], sphere_hit[MaxColumns];
+    alignas(64) int near[MaxColumns], near_list[MaxColumns];
     for (uint32_t prim : flat_spheres_) {
         const Shape &s = geometry_->analytic_shape(prim);
         const Vec3 c = s.center;
@@ -812,13 +812,13 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             float along = dot(oc, d) / dot(d, d);
             Vec3 closest = oc - d * along;
             float reach = radius + 1e-3f * (radius + norm(oc));
-            near[k] = squared_norm(closest) > reach * reach ? 0.f : 1.f;
+            near[k] = squared_norm(closest) > reach * reach ? 0 : 1;
         }
         // The near rays listed (branch-free), tested in lanes, their hits kept in order.
         int m = 0;
         for (int k = 0; k < n; ++k) {
             near_list[m] = k;
-            m += near[k] != 0.f ? 1 : 0;
+            m += near[k];
         }
         flat_sphere(s.center, s.radius, r, near_list, m, sphere_t, sphere_hit);
         for (int j = 0; j < m; ++j) {
@@ -829,12 +829,13 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             if (t < best_t[k]) best_t[k] = t, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = prim;
         }
     }
+    // The hits; then the rays to retrace, traced.
+#pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
-        if (retrace[k] != 0.f) {
-            trace(k);
-            continue;
-        }
         hits.t[k] = best_t[k], hits.u[k] = best_u[k], hits.v[k] = best_v[k], hits.prim[k] = best_prim[k];
+    }
+    for (int k = 0; k < n; ++k) {
+        if (retrace[k] != 0.f) trace(k);
     }
 }
 
