@@ -258,6 +258,9 @@ struct Batch {
     float espdf[B], obr[B], obg[B], obb[B], sampled0[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
+    // With one light (light_point_stage): the emitter sample's two numbers, and the point on
+    // the light's mesh they give, its face normal and its interpolated vertex normal.
+    float eux[B], euy[B], lpx[B], lpy[B], lpz[B], lfx[B], lfy[B], lfz[B], lvx[B], lvy[B], lvz[B];
 };
 
 /// c ? a : b, component by component (a ternary on whole vectors selects an address, which
@@ -456,6 +459,60 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
     return e;
 }
 
+/// With one light: each lane's emitter sample's two numbers (vertex_stage's first draws) and
+/// the point they give on the light's mesh (its first Tris triangles; the rest are padding),
+/// with its face normal and interpolated vertex normal, in a loop of their own. The light's
+/// triangles are the same in every lane, so each lane's are picked from all of them by sums
+/// of products with 1 or 0 (x * 1 + y * 0 is x for finite values, but that a zero's sign
+/// can turn positive), not gathered: gathers of 21 floats per lane took 40% of vertex_stage
+/// on the cbox, where GCC loads lanes one by one (cbox 245 -> 222 ms, cornell-box 394 -> 379,
+/// two triangles each). Selects instead of the products made GCC load under their condition
+/// (masked loads of one address, which it does not vectorise), and in vertex_stage's own
+/// loop they stopped the vectoriser in other instances.
+template <bool Delta, int Tris>
+__attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float *cdf = ws.cdf.data();  // (the first light's entries)
+    const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
+    const Vec3 *face_normals = ws.face_normals.data();
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        const bool draw_emitter = !Delta || m.diffuse + m.rough != 0.f;  // (vertex_stage's)
+        Vec2 u;
+        u.x = next_1d(b, k, draw_emitter);
+        u.y = next_1d(b, k, draw_emitter);
+        b.eux[k] = u.x, b.euy[k] = u.y;
+        u.x = std::min(u.x, 0.99999994f);  // (emitter_sample's reuse of u.x, one light)
+        // The triangle (vertex_stage's search: the CDF's entries at most u.x, whose padding
+        // no u reaches) and u.x within it.
+        float is[Tris], cdf_lo = 0.f, cdf_hi = 0.f;
+        uint32_t local = 0;
+        for (int i = 1; i < Tris; ++i) local += cdf[i] <= u.x;
+#pragma GCC unroll 8
+        for (int i = 0; i < Tris; ++i) {
+            is[i] = local == uint32_t(i) ? 1.f : 0.f;
+            cdf_lo = cdf_lo + is[i] * cdf[i], cdf_hi = cdf_hi + is[i] * cdf[i + 1];
+        }
+        float width = cdf_hi - cdf_lo;
+        u.x = std::min(width > 0.f ? (u.x - cdf_lo) / width : 0.f, 0.99999994f);
+        // Its point and normals.
+        Vec2 bc = warp::square_to_uniform_triangle(u);
+        float b0 = 1.f - bc.x - bc.y;
+        Vec3 lp, face_n, ln;
+#pragma GCC unroll 8
+        for (int i = 0; i < Tris; ++i) {
+            Vec3 p_i = vertices[3 * i] * b0 + vertices[3 * i + 1] * bc.x + vertices[3 * i + 2] * bc.y;
+            Vec3 n_i = normals[3 * i] * b0 + normals[3 * i + 1] * bc.x + normals[3 * i + 2] * bc.y;
+            lp = lp + p_i * is[i], ln = ln + n_i * is[i], face_n = face_n + face_normals[i] * is[i];
+        }
+        Vec3 vn = normalize(ln);
+        b.lpx[k] = lp.x, b.lpy[k] = lp.y, b.lpz[k] = lp.z;
+        b.lfx[k] = face_n.x, b.lfy[k] = face_n.y, b.lfz[k] = face_n.z;
+        b.lvx[k] = vn.x, b.lvy[k] = vn.y, b.lvz[k] = vn.z;
+    }
+}
+
 /// The vector stage of a bounce for the lanes [0, n) marked `shade`: path_li from the emitter
 /// sample to the roulette. It runs over all lanes, unmasked, and sets `alive` and `shadow`
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
@@ -481,6 +538,12 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // vectorise the boolean selects it makes of && chains and of booleans combined with
     // values that were themselves selected.
     const float roulette = depth + 1 >= cfg.rr_depth ? 1.f : 0.f;
+    if constexpr (OneLight) {
+        // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
+        // from its fourth entry on.)
+        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws);
+        else light_point_stage<Delta, 8>(b, n, ws);
+    }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
@@ -501,8 +564,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // Sample an emitter (emitter_sample: one chosen uniformly, u.x reused) and a point on
         // its mesh (Geometry::sample_direction), at diffuse vertices (BSDF::smooth).
         Vec2 u;
-        u.x = next_1d(b, k, draw_emitter);
-        u.y = next_1d(b, k, draw_emitter);
+        u.x = OneLight ? b.eux[k] : next_1d(b, k, draw_emitter);
+        u.y = OneLight ? b.euy[k] : next_1d(b, k, draw_emitter);
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
         const WavefrontScene::Light &light = OneLight ? first : lights[index];
@@ -520,9 +583,12 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             warp::SphereConeSample cone = warp::sample_sphere_cone(dc, dc2, light.radius, u);
             cone_d = cone.n, cone_pdf = cone.pdf;
         }
+        // (With one light, light_point_stage's point, assigned over triangle 0's, which the
+        // compiler drops: a Vec3 declared and then assigned a gather's value, or a
+        // conditional of Vec3s, stopped the vectoriser in the instances of several lights.)
         const int c = 9 * index;  // the light's CDF in light_cdf
         uint32_t local = 0;
-        for (int i = 1; i < 8; ++i) local += cdfs[c + i] <= u.x;
+        for (int i = 1; !OneLight && i < 8; ++i) local += cdfs[c + i] <= u.x;
         float width = cdfs[c + int(local) + 1] - cdfs[c + int(local)];
         u.x = std::min(width > 0.f ? (u.x - cdfs[c + int(local)]) / width : 0.f, 0.99999994f);
         const int t = 8 * index + int(local);  // the triangle, in the flat arrays
@@ -531,6 +597,11 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 lp = vertices[3 * t] * b0 + vertices[3 * t + 1] * bc.x + vertices[3 * t + 2] * bc.y;
         Vec3 face_n{face_normals[t].x, face_normals[t].y, face_normals[t].z};
         Vec3 vn = normalize(normals[3 * t] * b0 + normals[3 * t + 1] * bc.x + normals[3 * t + 2] * bc.y);
+        if constexpr (OneLight) {
+            lp = Vec3{b.lpx[k], b.lpy[k], b.lpz[k]};
+            face_n = Vec3{b.lfx[k], b.lfy[k], b.lfz[k]};
+            vn = Vec3{b.lvx[k], b.lvy[k], b.lvz[k]};
+        }
         Vec3 ln = select(light.has_normals, vn, face_n);
         ln = select(light.flip_normals, -ln, ln);
         if constexpr (NonMesh) {

@@ -574,3 +574,21 @@ def test18_bitmap_reflectances_in_the_wavefront(tmp_path, monkeypatch, bitmap):
     keys = [k for k in scene._keys if k.endswith("reflectance.data")]
     assert keys
     assert_lanes_give_the_tapes_gradients(scene, keys[:1], monkeypatch, spp=4)
+
+
+@pytest.mark.parametrize("light", ["quad", "strip", "panel"])
+@pytest.mark.parametrize("extra", [{}, {"ball": {"type": "sphere", "radius": 0.25, "bsdf": {"type": "dielectric"},
+                                             "to_world": tr.Transform.translate([0.3, 0.25, 0.2])}}],
+                         ids=["diffuse", "delta"])
+def test19_one_mesh_light_picked_in_lanes(tmp_path, monkeypatch, light, extra):
+    # With one light its emitter samples' triangles and points are picked in lanes from all
+    # of its triangles (light_point_stage: from 2 for the quad with vertex normals and the
+    # rectangle, from 8 for the 6-triangle strip seen from its back): the image is the scalar
+    # integrator's bit for bit.
+    d = room_dict(tmp_path, {"max_depth": 5}, **extra)
+    for other in {"quad", "strip", "panel"} - {light}:
+        del d[other]
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=8, seed=11)
+    assert float(scalar.mean()) > 0.005
+    assert torch.equal(wavefront, scalar)
