@@ -207,6 +207,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             ws.face_normals.push_back(tri.n);
         }
         ws.lights.push_back(light);
+        ws.any_mesh_lights = true;
     }
     return ws;
 }
@@ -520,8 +521,9 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
 /// dielectrics (which sample no emitter), whether some are rough (0: none, 1: GGX only, 2:
 /// Beckmann too); NonMesh: whether some emitters have no mesh (the `constant` environment,
-/// spheres). The code of the BSDFs and emitters a scene does not have is left out.
-template <bool OneLight, bool Delta, int Rough, bool NonMesh>
+/// spheres: 1), or none has (2, with several lights). The code of the BSDFs and emitters a
+/// scene does not have is left out.
+template <bool OneLight, bool Delta, int Rough, int NonMesh>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
                   int depth) {
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -585,13 +587,16 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         }
         // (With one light, light_point_stage's point, assigned over triangle 0's, which the
         // compiler drops: a Vec3 declared and then assigned a gather's value, or a
-        // conditional of Vec3s, stopped the vectoriser in the instances of several lights.)
-        const int c = 9 * index;  // the light's CDF in light_cdf
+        // conditional of Vec3s, stopped the vectoriser in the instances of several lights.
+        // Without mesh lights, the first light's unit triangle, loaded, not gathered, and
+        // ignored as the others were: veach-mis 101 -> 94 ms.)
+        constexpr bool Meshes = NonMesh != 2;
+        const int c = Meshes ? 9 * index : 0;  // the light's CDF in light_cdf
         uint32_t local = 0;
-        for (int i = 1; !OneLight && i < 8; ++i) local += cdfs[c + i] <= u.x;
+        for (int i = 1; !OneLight && Meshes && i < 8; ++i) local += cdfs[c + i] <= u.x;
         float width = cdfs[c + int(local) + 1] - cdfs[c + int(local)];
         u.x = std::min(width > 0.f ? (u.x - cdfs[c + int(local)]) / width : 0.f, 0.99999994f);
-        const int t = 8 * index + int(local);  // the triangle, in the flat arrays
+        const int t = Meshes ? 8 * index + int(local) : 0;  // the triangle, in the flat arrays
         Vec2 bc = warp::square_to_uniform_triangle(u);
         float b0 = 1.f - bc.x - bc.y;
         Vec3 lp = vertices[3 * t] * b0 + vertices[3 * t + 1] * bc.x + vertices[3 * t + 2] * bc.y;
@@ -800,10 +805,17 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
     const int rough = ws.any_beckmann ? 2 : ws.any_rough ? 1 : 0;
-    return with_flags([rough](auto one_light, auto delta, auto env) -> VertexStage {
+    return with_flags([rough, &ws](auto one_light, auto delta, auto env) -> VertexStage {
         constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value, E = decltype(env)::value;
         // (No Beckmann instance with several lights, one without a mesh, and delta BSDFs:
         // wavefront_scene shades Beckmann aside there.)
+        // Several lights, none a mesh: NonMesh 2.
+        if constexpr (!O && E) {
+            if (!ws.any_mesh_lights) {
+                if constexpr (D) return rough ? vertex_stage<O, D, 1, 2> : vertex_stage<O, D, 0, 2>;
+                else return rough == 2 ? vertex_stage<O, D, 2, 2> : rough == 1 ? vertex_stage<O, D, 1, 2> : vertex_stage<O, D, 0, 2>;
+            }
+        }
         if constexpr (!O && D && E) return rough ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
         else return rough == 2 ? vertex_stage<O, D, 2, E> : rough == 1 ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
     }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights);

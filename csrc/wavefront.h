@@ -104,6 +104,7 @@ struct WavefrontScene {
     std::vector<float> radiance;      ///< Light::radiance, 3 per light (for gathers)
     bool environment = false;         ///< whether one is the `constant` environment
     bool any_sphere_lights = false;   ///< whether some are spheres
+    bool any_mesh_lights = false;     ///< whether some are meshes
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t. (The
     // environment's and the spheres' entries are a unit triangle, gathered and ignored.)

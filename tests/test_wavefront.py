@@ -402,7 +402,7 @@ def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}, {"max_depth": 2}, {"rr_depth": 1}])
-@pytest.mark.parametrize("lights", ["area lights", "environment only"])
+@pytest.mark.parametrize("lights", ["area lights", "environment only", "environment and a sphere"])
 def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, lights):
     # The `constant` environment: its emitter samples (a uniform direction, a shadow ray to
     # infinity) in the vector stage, the emission of rays that escape in the shade stage, the
@@ -410,9 +410,11 @@ def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, ligh
     # tape's gradients.
     d = room_dict(tmp_path, integrator)
     d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}}
-    if lights == "environment only":
+    if lights != "area lights":
         for key in ("quad", "strip", "panel"):
             del d[key]
+    if lights == "environment and a sphere":
+        d["bulb"] = {"type": "sphere", "radius": 0.15, "center": [0.4, 1.2, 0.3], "emitter": {"type": "area", "radiance": 5.0}}
     scene = tr.load_dict(d)
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
@@ -469,11 +471,12 @@ def sphere_lights(d, lights):
     return d
 
 
-@pytest.mark.parametrize("lights", ["spheres and meshes", "one sphere", "enclosing sphere"])
+@pytest.mark.parametrize("lights", ["spheres and meshes", "one sphere", "enclosing sphere", "two spheres"])
 def test14_sphere_lights_in_lanes(tmp_path, monkeypatch, lights):
     # Area lights on spheres: emitter samples in the vector stage (Geometry::sample_direction's
-    # cone from outside, its small-cone expansion, a uniform point from inside), the image
-    # bitwise path_li's; their radiance differentiated in lanes, with a reflectance.
+    # cone from outside, its small-cone expansion, a uniform point from inside; with no mesh
+    # light, its instance that gathers no triangle), the image bitwise path_li's; their
+    # radiance differentiated in lanes, with a reflectance.
     scene = tr.load_dict(sphere_lights(room_dict(tmp_path), lights))
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
