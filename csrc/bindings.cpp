@@ -583,13 +583,6 @@ struct TestRays {
         return {c[0].data() + first, c[1].data() + first, c[2].data() + first, c[3].data() + first,
                 c[4].data() + first, c[5].data() + first, c[6].data() + first, c[7].data() + first};
     }
-    Ray ray(int64_t i) const {
-        Ray r;
-        r.o = {c[0][size_t(i)], c[1][size_t(i)], c[2][size_t(i)]};
-        r.d = {c[3][size_t(i)], c[4][size_t(i)], c[5][size_t(i)]};
-        r.tmin = c[6][size_t(i)], r.tmax = c[7][size_t(i)];
-        return r;
-    }
 };
 
 /// Whether each ray, given as it is, is blocked in its interval (for tests): from
@@ -606,7 +599,7 @@ torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Te
             scene.bvh.occluded_columns(rays.from(b), m, flags.data() + b);
             continue;
         }
-        for (int k = 0; k < m; ++k) flags[size_t(b + k)] = scene.bvh.occluded(rays.ray(b + k));
+        for (int k = 0; k < m; ++k) flags[size_t(b + k)] = scene.bvh.occluded(rays.from(b).ray(k));
     }
     for (int64_t i = 0; i < rays.n; ++i) blocked.data_ptr<bool>()[i] = flags[size_t(i)] != 0;
     return blocked;
@@ -631,7 +624,7 @@ py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor 
         }
         for (int k = 0; k < m; ++k) {
             Hit hit;
-            scene.bvh.intersect(rays.ray(b + k), &hit);
+            scene.bvh.intersect(rays.from(b).ray(k), &hit);
             hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
         }
     }

@@ -742,12 +742,8 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
 
 void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
     auto trace = [&](int k) {
-        Ray ray;
-        ray.o = {r.ox[k], r.oy[k], r.oz[k]};
-        ray.d = {r.dx[k], r.dy[k], r.dz[k]};
-        ray.tmin = r.tmin[k], ray.tmax = r.tmax[k];
         Hit hit;
-        intersect(ray, &hit);
+        intersect(r.ray(k), &hit);
         hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
     };
     if (!flat()) {
@@ -847,13 +843,7 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
         for (int k = 0; k < n; ++k) blocked[k] = prim[k] != ~0u;
         return;
     }
-    for (int k = 0; k < n; ++k) {
-        Ray ray;
-        ray.o = {r.ox[k], r.oy[k], r.oz[k]};
-        ray.d = {r.dx[k], r.dy[k], r.dz[k]};
-        ray.tmin = r.tmin[k], ray.tmax = r.tmax[k];
-        blocked[k] = occluded(ray);
-    }
+    for (int k = 0; k < n; ++k) blocked[k] = occluded(r.ray(k));
 }
 
 bool BVH::occluded(const Ray &ray) const {

@@ -40,6 +40,14 @@ static_assert(BVHWidth <= 8, "PrimPack's lane masks are 8 bits wide");
 /// Rays as columns (a wavefront's batch): origin, direction and interval of each.
 struct RayColumns {
     const float *ox, *oy, *oz, *dx, *dy, *dz, *tmin, *tmax;
+    /// Ray k.
+    Ray ray(int k) const {
+        Ray r;
+        r.o = {ox[k], oy[k], oz[k]};
+        r.d = {dx[k], dy[k], dz[k]};
+        r.tmin = tmin[k], r.tmax = tmax[k];
+        return r;
+    }
 };
 /// Closest hits as columns (Hit's fields).
 struct HitColumns {

@@ -479,7 +479,9 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
-        const bool draw_emitter = !Delta || m.diffuse + m.rough != 0.f;  // (vertex_stage's)
+        // (vertex_stage's draw_emitter: `rough` is zero in every material where its instance
+        // has no rough BSDF.)
+        const bool draw_emitter = !Delta || m.diffuse + m.rough != 0.f;
         Vec2 u;
         u.x = next_1d(b, k, draw_emitter);
         u.y = next_1d(b, k, draw_emitter);
