@@ -807,19 +807,22 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
     const int rough = ws.any_beckmann ? 2 : ws.any_rough ? 1 : 0;
-    return with_flags([rough, &ws](auto one_light, auto delta, auto env) -> VertexStage {
-        constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value, E = decltype(env)::value;
-        // (No Beckmann instance with several lights, one without a mesh, and delta BSDFs:
-        // wavefront_scene shades Beckmann aside there.)
+    // The instance for NonMesh N (0, 1, 2) and the rough BSDFs. (No Beckmann instance with
+    // several lights, one without a mesh, and delta BSDFs: wavefront_scene shades Beckmann
+    // aside there.)
+    auto instance = [rough](auto one_light, auto delta, auto non_mesh) -> VertexStage {
+        constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value;
+        constexpr int N = decltype(non_mesh)::value;
+        if constexpr (!O && D && N) return rough ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
+        else return rough == 2 ? vertex_stage<O, D, 2, N> : rough == 1 ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
+    };
+    return with_flags([&](auto one_light, auto delta, auto env) -> VertexStage {
+        constexpr bool O = decltype(one_light)::value, E = decltype(env)::value;
         // Several lights, none a mesh: NonMesh 2.
         if constexpr (!O && E) {
-            if (!ws.any_mesh_lights) {
-                if constexpr (D) return rough ? vertex_stage<O, D, 1, 2> : vertex_stage<O, D, 0, 2>;
-                else return rough == 2 ? vertex_stage<O, D, 2, 2> : rough == 1 ? vertex_stage<O, D, 1, 2> : vertex_stage<O, D, 0, 2>;
-            }
+            if (!ws.any_mesh_lights) return instance(one_light, delta, std::integral_constant<int, 2>{});
         }
-        if constexpr (!O && D && E) return rough ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
-        else return rough == 2 ? vertex_stage<O, D, 2, E> : rough == 1 ? vertex_stage<O, D, 1, E> : vertex_stage<O, D, 0, E>;
+        return instance(one_light, delta, std::integral_constant<int, E ? 1 : 0>{});
     }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights);
 }
 
