@@ -228,6 +228,21 @@ public:
     void splat(Block &block, int px, int py, const SplatWeights &w, int k, const S *L) const {
         add(block, window(px, py, w, k), &w.wx[size_t(k)], &w.wy[size_t(k)], SplatWeights::Batch, L);
     }
+    /// splat() of samples ks[0, r) of `w`, all taken in pixel (px, py), in that order, their
+    /// values finite: each pixel of the filter's whole window adds them one after another,
+    /// the sums splat() makes (a weight splat() skips is zero, and adding w L = +-0 leaves a
+    /// sum unchanged: no sum is -0), with a row of sums held in registers over the run
+    /// instead of loaded and stored per sample (veach-mis's gaussian: 107 -> 94 ms). The tent's
+    /// splats, 2 x 2 of its 3 x 3 pixels, gain nothing from it (cbox at 4 spp took 2% longer),
+    /// nor do windows the film's edges cut, nor wider filters': they take splat().
+    void splat_run(Block &block, int px, int py, const SplatWeights &w, const int *ks, int r,
+                   const RGB<float> *L) const {
+        const Window win = window(px, py, 0, 0, 0, 0);
+        const bool whole = win.i0 == -win.b && win.i1 == win.b && win.j0 == -win.b && win.j1 == win.b;
+        if (whole && win.b == 2) return splat_run<2>(block, win, w, ks, r, L);
+        if (whole && win.b == 3) return splat_run<3>(block, win, w, ks, r, L);
+        for (int s = 0; s < r; ++s) splat(block, px, py, w, ks[s], &L[ks[s]]);
+    }
 
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
     /// comes (see the class). Distinct tiles may commit concurrently.
@@ -411,6 +426,35 @@ private:
         }
     }
 
+    /// splat_run() over a whole window of border Border (the gaussian's 5 x 5).
+    template <int Border>
+    void splat_run(Block &block, const Window &win, const SplatWeights &w, const int *ks, int r,
+                   const RGB<float> *L) const {
+        constexpr int N = 2 * Border + 1;
+        constexpr size_t Batch = SplatWeights::Batch;
+        for (int j = 0; j < N; ++j) {
+            PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
+            double acc[N][4];
+            for (int i = 0; i < N; ++i) {
+                for (int c = 0; c < 3; ++c) acc[i][c] = sum[i].value[c];
+                acc[i][3] = sum[i].weight;
+            }
+            for (int s = 0; s < r; ++s) {
+                const size_t k = size_t(ks[s]);
+                const double wy = w.wy[size_t(j) * Batch + k];
+                const double l[4] = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
+                for (int i = 0; i < N; ++i) {
+                    const double wi = double(w.wx[size_t(i) * Batch + k]) * wy;
+                    for (int c = 0; c < 4; ++c) acc[i][c] += wi * l[c];
+                }
+            }
+            for (int i = 0; i < N; ++i) {
+                for (int c = 0; c < 3; ++c) sum[i].value[c] = acc[i][c];
+                sum[i].weight = acc[i][3];
+            }
+        }
+    }
+
     template <typename T>
     static void value_of(const RGB<T> &L, double *l) {
         for (int c = 0; c < 3; ++c) l[c] = double(L[c]);
@@ -451,12 +495,19 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
         trace_wavefront(ctx, ws, cfg, camera, batch, n, pos, L);
         for (int k = 0; k < n; ++k) weights.set(k, batch[k].px, batch[k].py, pos[k]);
         weights.compute(n);
-        for (int k = 0; k < n; ++k) {
-            if (!sample_is_finite(L[k])) {
-                ++dropped;
-                continue;
+        // Each pixel's run of samples in one splat (its finite ones).
+        int run[WavefrontBatch];
+        for (int k = 0; k < n;) {
+            const int px = batch[k].px, py = batch[k].py;
+            int r = 0;
+            for (; k < n && batch[k].px == px && batch[k].py == py; ++k) {
+                if (sample_is_finite(L[k])) {
+                    run[r++] = k;
+                } else {
+                    ++dropped;
+                }
             }
-            film.splat(block, batch[k].px, batch[k].py, weights, k, &L[k]);
+            film.splat_run(block, px, py, weights, run, r, L);
         }
         n = 0;
     };
