@@ -432,21 +432,18 @@ private:
                    const RGB<float> *L) const {
         constexpr int N = 2 * Border + 1;
         constexpr size_t Batch = SplatWeights::Batch;
+        // (A pixel's sum as one 4-wide vector: w (r, g, b, 1) is a broadcast and a product.)
+        typedef double Sum4 __attribute__((vector_size(32)));
+        static_assert(sizeof(PixelSum) == sizeof(Sum4));
         for (int j = 0; j < N; ++j) {
             PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
-            double acc[N][4];
-            for (int i = 0; i < N; ++i) {
-                for (int c = 0; c < 3; ++c) acc[i][c] = sum[i].value[c];
-                acc[i][3] = sum[i].weight;
-            }
+            Sum4 acc[N];
+            for (int i = 0; i < N; ++i) acc[i] = Sum4{sum[i].value[0], sum[i].value[1], sum[i].value[2], sum[i].weight};
             for (int s = 0; s < r; ++s) {
                 const size_t k = size_t(ks[s]);
                 const double wy = w.wy[size_t(j) * Batch + k];
-                const double l[4] = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
-                for (int i = 0; i < N; ++i) {
-                    const double wi = double(w.wx[size_t(i) * Batch + k]) * wy;
-                    for (int c = 0; c < 4; ++c) acc[i][c] += wi * l[c];
-                }
+                const Sum4 l = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
+                for (int i = 0; i < N; ++i) acc[i] += (double(w.wx[size_t(i) * Batch + k]) * wy) * l;
             }
             for (int i = 0; i < N; ++i) {
                 for (int c = 0; c < 3; ++c) sum[i].value[c] = acc[i][c];
