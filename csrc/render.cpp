@@ -115,6 +115,16 @@ struct alignas(32) PixelSum {
     double weight = 0.0;
 };
 
+/// A PixelSum as one 4-wide vector (GCC's vector type), so that adding w (r, g, b, 1) is a
+/// broadcast, a product and a sum (the vectoriser built the broadcast from shuffles).
+typedef double Sum4 __attribute__((vector_size(32)));
+static_assert(sizeof(PixelSum) == sizeof(Sum4));
+inline Sum4 load_sum(const PixelSum &s) { return Sum4{s.value[0], s.value[1], s.value[2], s.weight}; }
+inline void store_sum(PixelSum &s, const Sum4 &v) {
+    for (int c = 0; c < 3; ++c) s.value[c] = v[c];
+    s.weight = v[3];
+}
+
 /// A rectangle [x0, x1) x [y0, y1) of the crop window.
 struct Rect {
     int x0 = 0, y0 = 0, x1 = 0, y1 = 0;
@@ -407,14 +417,14 @@ private:
              const S *L) const {
         double l[4] = {0.0, 0.0, 0.0, 1.0};
         if (L) value_of(*L, l);
+        const Sum4 l4 = {l[0], l[1], l[2], l[3]};
         for (int j = win.j0; j <= win.j1; ++j) {
             size_t row = block.index(win.x, win.y + j);
             PixelSum *sum = &block.sums[row];
             double wyj = wy[size_t(j + win.b) * stride];
             for (int i = win.i0; i <= win.i1; ++i) {
                 double w = double(wx[size_t(i + win.b) * stride]) * wyj;
-                for (int c = 0; c < 3; ++c) sum[i].value[c] += w * l[c];
-                sum[i].weight += w;
+                store_sum(sum[i], load_sum(sum[i]) + w * l4);
             }
             if constexpr (IsDual<S>::value) {
                 if (!L || block.tangents.empty()) continue;
@@ -432,23 +442,17 @@ private:
                    const RGB<float> *L) const {
         constexpr int N = 2 * Border + 1;
         constexpr size_t Batch = SplatWeights::Batch;
-        // (A pixel's sum as one 4-wide vector: w (r, g, b, 1) is a broadcast and a product.)
-        typedef double Sum4 __attribute__((vector_size(32)));
-        static_assert(sizeof(PixelSum) == sizeof(Sum4));
         for (int j = 0; j < N; ++j) {
             PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
             Sum4 acc[N];
-            for (int i = 0; i < N; ++i) acc[i] = Sum4{sum[i].value[0], sum[i].value[1], sum[i].value[2], sum[i].weight};
+            for (int i = 0; i < N; ++i) acc[i] = load_sum(sum[i]);
             for (int s = 0; s < r; ++s) {
                 const size_t k = size_t(ks[s]);
                 const double wy = w.wy[size_t(j) * Batch + k];
                 const Sum4 l = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
                 for (int i = 0; i < N; ++i) acc[i] += (double(w.wx[size_t(i) * Batch + k]) * wy) * l;
             }
-            for (int i = 0; i < N; ++i) {
-                for (int c = 0; c < 3; ++c) sum[i].value[c] = acc[i][c];
-                sum[i].weight = acc[i][3];
-            }
+            for (int i = 0; i < N; ++i) store_sum(sum[i], acc[i]);
         }
     }
 
@@ -473,38 +477,45 @@ private:
     int next_border_ = 0;            ///< the next tile whose border is to be added
 };
 
-/// The samples of tile (tx, ty) traced by trace_wavefront() in batches, each batch splatted
-/// in the order the scalar loop splats (pixel by pixel, sample by sample), so that every pixel
-/// sums the same values in the same order. Returns the number of non-finite samples dropped.
+/// The samples of tile (tx, ty) traced by trace_wavefront() in chunks of up to 16 batches
+/// (whose lanes it refills as paths end), each chunk splatted in the order the scalar loop
+/// splats (pixel by pixel, sample by sample), so that every pixel sums the same values in the
+/// same order. Returns the number of non-finite samples dropped.
 uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                               const Camera &camera, const IntegratorSettings &cfg,
                               const RenderRequest &req, const Tiles &tiles, int tx, int ty,
                               const Film &film, Film::Block &block) {
-    WavefrontSample batch[WavefrontBatch];
-    Vec2 pos[WavefrontBatch];
-    RGB<float> L[WavefrontBatch];
-    // The batch's filter weights (SplatWeights: in SIMD lanes).
+    constexpr int Chunk = 16 * WavefrontBatch;
+    static thread_local std::vector<WavefrontSample> samples(Chunk);
+    static thread_local std::vector<Vec2> pos(Chunk);
+    static thread_local std::vector<RGB<float>> L(Chunk);
+    // A batch's filter weights (SplatWeights: in SIMD lanes).
     SplatWeights weights(camera.filter);
     static_assert(SplatWeights::Batch == WavefrontBatch);
     int n = 0;
     uint64_t dropped = 0;
     auto flush = [&] {
-        trace_wavefront(ctx, ws, cfg, camera, batch, n, pos, L);
-        for (int k = 0; k < n; ++k) weights.set(k, batch[k].px, batch[k].py, pos[k]);
-        weights.compute(n);
-        // Each pixel's run of samples in one splat (its finite ones).
-        int run[WavefrontBatch];
-        for (int k = 0; k < n;) {
-            const int px = batch[k].px, py = batch[k].py;
-            int r = 0;
-            for (; k < n && batch[k].px == px && batch[k].py == py; ++k) {
-                if (sample_is_finite(L[k])) {
-                    run[r++] = k;
-                } else {
-                    ++dropped;
+        trace_wavefront(ctx, ws, cfg, camera, samples.data(), n, pos.data(), L.data());
+        for (int first = 0; first < n; first += WavefrontBatch) {
+            const int m = std::min(WavefrontBatch, n - first);
+            const WavefrontSample *batch = &samples[size_t(first)];
+            const RGB<float> *value = &L[size_t(first)];
+            for (int k = 0; k < m; ++k) weights.set(k, batch[k].px, batch[k].py, pos[size_t(first + k)]);
+            weights.compute(m);
+            // Each pixel's run of samples in one splat (its finite ones).
+            int run[WavefrontBatch];
+            for (int k = 0; k < m;) {
+                const int px = batch[k].px, py = batch[k].py;
+                int r = 0;
+                for (; k < m && batch[k].px == px && batch[k].py == py; ++k) {
+                    if (sample_is_finite(value[k])) {
+                        run[r++] = k;
+                    } else {
+                        ++dropped;
+                    }
                 }
+                film.splat_run(block, px, py, weights, run, r, value);
             }
-            film.splat_run(block, px, py, weights, run, r, L);
         }
         n = 0;
     };
@@ -512,8 +523,8 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
                            [&](int px, int py, uint64_t key) {
         PixelSeed seed(req.seed, key);
         for (int s = 0; s < req.spp; ++s) {
-            batch[n++] = {px, py, seed, s};
-            if (n == WavefrontBatch) flush();
+            samples[size_t(n++)] = {px, py, seed, s};
+            if (n == Chunk) flush();
         }
     });
     if (n > 0) flush();

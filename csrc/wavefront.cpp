@@ -226,7 +226,8 @@ struct Batch {
     float eta[B], prev_pdf[B], prev_px[B], prev_py[B], prev_pz[B];
     int prev_delta[B];
     uint64_t state[B], inc[B];
-    int seq[B];  ///< the sample's index in the caller's arrays
+    int seq[B];    ///< the sample's index in the caller's arrays
+    int depth[B];  ///< the path's vertex count so far (path_li's `depth`)
     // The closest hit of this bounce's ray (Hit's fields).
     float ht[B], hu[B], hv[B];
     uint32_t prim[B];
@@ -526,8 +527,7 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// spheres: 1), or none has (2, with several lights). The code of the BSDFs and emitters a
 /// scene does not have is left out.
 template <bool OneLight, bool Delta, int Rough, int NonMesh>
-void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg,
-                  int depth) {
+void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
     // (With one light, its fields are invariants of the loop: a load of one under a condition
@@ -541,7 +541,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
     // vectorise the boolean selects it makes of && chains and of booleans combined with
     // values that were themselves selected.
-    const float roulette = depth + 1 >= cfg.rr_depth ? 1.f : 0.f;
+    const int rr_depth = cfg.rr_depth;
     if constexpr (OneLight) {
         // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
         // from its fourth entry on.)
@@ -757,6 +757,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 o = offset_p(b, k, dn);
 
         // Russian roulette (path_li's): survival with the roulette throughput, capped.
+        const float roulette = b.depth[k] + 1 >= rr_depth ? 1.f : 0.f;
         float beta_max = std::max(rr_r, std::max(rr_g, rr_b));
         alive = beta_max > 0.f ? alive : 0.f;
         float q = std::min(beta_max * path_eta * path_eta, MaxSurvival);
@@ -804,7 +805,7 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 }
 
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
-using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &, int);
+using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
     const int rough = ws.any_beckmann ? 2 : ws.any_rough ? 1 : 0;
     // The instance for NonMesh N (0, 1, 2) and the rough BSDFs. (No Beckmann instance with
@@ -1022,6 +1023,7 @@ RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
     b.prev_delta[to] = a.prev_delta[from];
     b.state[to] = a.state[from], b.inc[to] = a.inc[from];
     b.seq[to] = a.seq[from];
+    b.depth[to] = a.depth[from];
 }
 
 /// Lane k's path state, as path_li holds it.
@@ -1053,18 +1055,21 @@ void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &r
     b.inc[k] = sampler.pcg_inc();
 }
 
-/// The perspective sensor's rays of samples [0, n) into the batch, and their film positions:
-/// what Sampler, Camera::sample_position and Camera::sample_ray compute, in SIMD lanes.
-void camera_stage(Batch &b, const WavefrontSample *samples, int n, const Camera &camera, Vec2 *pos) {
+/// The perspective sensor's rays of samples [0, n) into lanes [first, first + n) of the batch,
+/// and their film positions: what Sampler, Camera::sample_position and Camera::sample_ray
+/// compute, in SIMD lanes.
+void camera_stage(Batch &b, int first, const WavefrontSample *samples, int n, const Camera &camera,
+                  Vec2 *pos) {
     const Camera cam = camera;  // a local: the loop's stores cannot alias it
 #pragma GCC ivdep
-    for (int k = 0; k < n; ++k) {
+    for (int i = 0; i < n; ++i) {
+        const ptrdiff_t k = ptrdiff_t(first) + i;  // (an int sum, which may wrap, is not affine to GCC)
         uint64_t state, inc;
-        pcg32_seed(samples[k].seed.stream, uint64_t(samples[k].s), &state, &inc);
+        pcg32_seed(samples[i].seed.stream, uint64_t(samples[i].s), &state, &inc);
         float ux = uniform_float(pcg32_next(state, inc));
         float uy = uniform_float(pcg32_next(state, inc));
-        Vec2 p{float(samples[k].px) + ux, float(samples[k].py) + uy};
-        pos[k].x = p.x, pos[k].y = p.y;
+        Vec2 p{float(samples[i].px) + ux, float(samples[i].py) + uy};
+        pos[i].x = p.x, pos[i].y = p.y;
         Ray ray = cam.perspective_ray(p);
         b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
         b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
@@ -1247,14 +1252,14 @@ RBPT_INLINE Ray load_ray(const Batch &b, int k) {
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
                      const IntegratorSettings &settings, const Camera &camera,
-                     const WavefrontSample *samples, int n, Vec2 *pos, RGB<float> *L,
+                     const WavefrontSample *samples, int n_samples, Vec2 *pos, RGB<float> *L,
                      WavefrontRecord *record) {
     const Scene &scene = ctx.scene;
     const IntegratorSettings cfg = *path_settings(settings);  // (wavefront_scene() checked it)
     // Recording: reads of differentiated parameters other than a linear input's or an
     // emission's send the path to the tape.
     ParamReadLog *log = record ? ctx.params.log : nullptr;
-    if (record) record->tape.assign(size_t(n), 0), record->vertices.clear();
+    if (record) record->tape.assign(size_t(n_samples), 0), record->vertices.clear();
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own).
     static thread_local Batch b, side;
@@ -1270,57 +1275,82 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto unexpected_reads = [&](int k, int reads_before, int expected) {
         if (log && log->count != reads_before + expected) record->tape[size_t(b.seq[k])] = 1;
     };
-    // Camera rays: the perspective sensor's in SIMD lanes (Sampler's stream set-up and its
-    // two uniforms, Camera::perspective_ray), the others one sample at a time.
-    if (camera.type == CameraType::Perspective) {
-        camera_stage(b, samples, n, camera, pos);
-    } else {
-        for (int k = 0; k < n; ++k) {
-            const WavefrontSample &s = samples[k];
-            Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
-            pos[k] = camera.sample_position(s.px, s.py, sampler);
-            Ray ray = camera.sample_ray(pos[k], sampler);
-            b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
-            b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
-            b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-            b.state[k] = sampler.pcg_state();
-            b.inc[k] = sampler.pcg_inc();
+    // Start the paths of samples [next, next + m) in lanes [first, first + m): their camera
+    // rays (the perspective sensor's in SIMD lanes: Sampler's stream set-up and its two
+    // uniforms, Camera::perspective_ray; the others one sample at a time), at depth 0.
+    int next = 0;
+    auto start = [&](int first, int m) {
+        if (camera.type == CameraType::Perspective) {
+            camera_stage(b, first, samples + next, m, camera, pos + next);
+        } else {
+            for (int i = 0; i < m; ++i) {
+                const int k = first + i;
+                const WavefrontSample &s = samples[next + i];
+                Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
+                pos[next + i] = camera.sample_position(s.px, s.py, sampler);
+                Ray ray = camera.sample_ray(pos[next + i], sampler);
+                b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+                b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+                b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+                b.state[k] = sampler.pcg_state();
+                b.inc[k] = sampler.pcg_inc();
+            }
         }
-    }
-    for (int k = 0; k < n; ++k) {
-        b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
-        b.br[k] = b.bg[k] = b.bb[k] = 1.f;
-        b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
-        b.eta[k] = 1.f;
-        b.prev_pdf[k] = 1.f;
-        b.prev_delta[k] = 1;
-        b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
-        b.seq[k] = k;
-    }
+        for (int k = first; k < first + m; ++k) {
+            b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
+            b.br[k] = b.bg[k] = b.bb[k] = 1.f;
+            b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
+            b.eta[k] = 1.f;
+            b.prev_pdf[k] = 1.f;
+            b.prev_delta[k] = 1;
+            b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
+            b.seq[k] = next + (k - first);
+            b.depth[k] = 0;
+        }
+        next += m;
+    };
+    // Lanes freed by ended paths take the next samples at the end of each bounce, so that the
+    // stages run over full batches to the last samples (cornell-box's paths, up to 65
+    // vertices, left half the bounces to fewer than 8 lanes, whose stages cost 10 times more
+    // per lane than a full batch's). Where every path has at most two vertices (`direct`),
+    // half of a refilled batch would be at its last vertex, which the shading stages would
+    // run over for nothing: there a batch is refilled once it has drained.
+    const bool refill = !(cfg.max_depth >= 1 && cfg.max_depth <= 2);
+    int n = std::min(n_samples, B);
+    start(0, n);
     auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
+    // The last vertex max_depth allows: only the emission lane k's ray finds (path_li's).
+    auto last_vertex = [&](int k) {
+        int emitter, reads = log ? log->count : 0, expected = 0;
+        const Hit hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
+        SurfaceInteraction si = scene.emitter_interaction(load_ray(b, k), hit, &emitter);
+        if (emitter >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
+            RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                                           b.prev_delta[k] != 0, b.prev_pdf[k],
+                                           Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
+            b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
+            expected = emission_read(k, reads, scene.emitters[emitter], Le);
+        }
+        unexpected_reads(k, reads, expected);
+    };
+    auto is_last = [&](int k) { return cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth; };
     const Geometry &g = scene.geometry;
-    for (int depth = 0; n > 0; ++depth) {
+    while (n > 0) {
         // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
         scene.bvh.intersect_columns({b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax}, n,
                                     {b.ht, b.hu, b.hv, b.prim});
         rays_traced += uint64_t(n);
-        if (cfg.max_depth >= 0 && depth + 1 >= cfg.max_depth) {
-            // The last vertex max_depth allows: only the emission each ray finds (path_li's).
+        int n_last = 0;
+        for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
+        if (n_last == n) {
+            // Every path at its last vertex: they end here.
             for (int k = 0; k < n; ++k) {
-                int emitter, reads = log ? log->count : 0, expected = 0;
-                const Hit hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
-                SurfaceInteraction si = scene.emitter_interaction(load_ray(b, k), hit, &emitter);
-                if (emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
-                    RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
-                                                   b.prev_delta[k] != 0, b.prev_pdf[k],
-                                                   Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
-                    b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
-                    expected = emission_read(k, reads, scene.emitters[emitter], Le);
-                }
-                unexpected_reads(k, reads, expected);
+                last_vertex(k);
                 finish(k);
             }
-            break;
+            n = std::min(n_samples - next, B);
+            start(0, n);
+            continue;
         }
         // Complete the interactions of the triangles hit, in lanes.
         interaction_stage_for(ws)(b, n, g, ws);
@@ -1333,12 +1363,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         const bool quick = !log || log->watched == ws.quick_watched;
         if (quick) quick_shade_stage(b, n, ws);
         for (int k = 0; k < n; ++k) {
+            if (n_last > 0 && is_last(k)) {
+                // A path at its last vertex (among others that go on): its emission, and the
+                // vector stage ends it (shade 0).
+                last_vertex(k);
+                b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
+                continue;
+            }
             if (quick && b.shade[k]) continue;
             b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {
                 // The ray escaped: the environment's emission (if the scene has one) ends it.
-                if (scene.environment >= 0 && !(cfg.hide_emitters && depth == 0)) {
+                if (scene.environment >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
                     const Emitter &e = scene.emitters[size_t(scene.environment)];
                     RGB<float> Le = emission_found(ctx, e, SurfaceInteraction(), RGB<float>(b.br[k], b.bg[k], b.bb[k]),
                                                    b.prev_delta[k] != 0, b.prev_pdf[k],
@@ -1357,7 +1394,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 store_interaction(b, k, si);
             }
             const Shape &shape = g.shapes[g.shape_of(b.prim[k])];
-            if (shape.emitter >= 0 && !(cfg.hide_emitters && depth == 0)) {
+            if (shape.emitter >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
                 if (!si.valid) si = load_interaction(b, k, g);
                 RGB<float> Le = emission_found(ctx, scene.emitters[shape.emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
                                                b.prev_delta[k] != 0, b.prev_pdf[k],
@@ -1374,9 +1411,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 PathState<RGB<float>> path = load_path(b, k);
                 Sampler sampler = Sampler::independent(b.state[k], b.inc[k]);
                 Ray ray;
-                side.alive[n_side] = path_vertex(ctx, cfg, depth, si, sampler, path, ray);
+                side.alive[n_side] = path_vertex(ctx, cfg, b.depth[k], si, sampler, path, ray);
                 store_path(side, n_side, path, ray, sampler);
                 side.seq[n_side] = b.seq[k];
+                side.depth[n_side] = b.depth[k];
                 side_lane[n_side++] = k;
                 unexpected_reads(k, reads, expected);
                 continue;
@@ -1420,7 +1458,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // Shade the other vertices in lanes (Beckmann's visible normals first); then the
         // vertices shaded aside return.
         const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
-        vertex_stage_for(ws)(b, n, ws, cfg, depth);
+        vertex_stage_for(ws)(b, n, ws, cfg);
         if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
@@ -1494,7 +1532,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             if (live != k) move_lane(b, k, b, live);
             ++live;
         }
+        // The paths that go on take their next vertex; the next samples start in the lanes
+        // freed (or in the whole batch, once drained, without refill).
+        for (int k = 0; k < live; ++k) ++b.depth[k];
         n = live;
+        if (next < n_samples && (refill || n == 0)) {
+            const int m = std::min(n_samples - next, B - n);
+            start(n, m);
+            n += m;
+        }
     }
 }
 

@@ -175,8 +175,9 @@ struct WavefrontRecord {
     std::vector<char> tape;
 };
 
-/// Trace `n` <= WavefrontBatch samples: their film positions into pos[i] and radiance into
-/// L[i], as the scalar loop (Sampler, Camera::sample_position, sample_ray, path_li) would.
+/// Trace `n` samples, WavefrontBatch paths at a time (lanes freed by ended paths take the next
+/// samples): their film positions into pos[i] and radiance into L[i], as the scalar loop
+/// (Sampler, Camera::sample_position, sample_ray, path_li) would.
 /// With `record` (the backward pass in lanes; ctx.params.log watching the differentiated
 /// parameters), also the vertices whose linear inputs (linear_in_inputs) and the emission
 /// that read those parameters.
