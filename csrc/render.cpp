@@ -753,10 +753,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
         ParamReadLog log;
         log.watched = watched.data();
-        WavefrontSample batch[WavefrontBatch];
-        RGB<T> adjoints[WavefrontBatch];
-        Vec2 positions[WavefrontBatch];
-        RGB<float> radiance[WavefrontBatch];
+        // (Up to 16 batches' worth of samples per call: trace_wavefront refills its lanes.)
+        constexpr int Chunk = 16 * WavefrontBatch;
+        std::vector<WavefrontSample> batch(Chunk);
+        std::vector<RGB<T>> adjoints(Chunk);
+        std::vector<Vec2> positions(Chunk);
+        std::vector<RGB<float>> radiance(Chunk);
         WavefrontRecord record;
         int n_batch = 0;
         if constexpr (std::is_same_v<T, float>) {
@@ -767,7 +769,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         }
         auto flush = [&] {
             if constexpr (std::is_same_v<T, float>) {
-                trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch, n_batch, positions, radiance, &record);
+                trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch.data(), n_batch, positions.data(),
+                                radiance.data(), &record);
                 for (const WavefrontVertex &v : record.vertices)
                     for (int c = 0; c < 3; ++c)
                         if (v.seq >= 0 && v.kind != WavefrontVertex::Roughness && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
@@ -862,7 +865,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     if (dL[0] == T(0) && dL[1] == T(0) && dL[2] == T(0)) return;
                     batch[n_batch] = {px, py, seed, s};
                     adjoints[n_batch++] = dL;
-                    if (n_batch == WavefrontBatch) flush();
+                    if (n_batch == Chunk) flush();
                     return;
                 }
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
