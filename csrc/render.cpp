@@ -436,7 +436,7 @@ private:
         }
     }
 
-    /// splat_run() over a whole window of border Border (the gaussian's 5 x 5).
+    /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7).
     template <int Border>
     void splat_run(Block &block, const Window &win, const SplatWeights &w, const int *ks, int r,
                    const RGB<float> *L) const {
