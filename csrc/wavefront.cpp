@@ -1238,15 +1238,12 @@ void store_interaction(Batch &b, int k, const SurfaceInteraction &si) {
     b.uvx[k] = si.uv.x, b.uvy[k] = si.uv.y;
 }
 
-/// Lane k's ray.
-RBPT_INLINE Ray load_ray(const Batch &b, int k) {
-    Ray ray;
-    ray.o = {b.ox[k], b.oy[k], b.oz[k]};
-    ray.d = {b.dx[k], b.dy[k], b.dz[k]};
-    ray.tmin = b.tmin[k];
-    ray.tmax = b.tmax[k];
-    return ray;
+/// The batch's rays as the BVH's columns.
+RBPT_INLINE RayColumns ray_columns(const Batch &b) {
+    return {b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax};
 }
+/// Lane k's ray.
+RBPT_INLINE Ray load_ray(const Batch &b, int k) { return ray_columns(b).ray(k); }
 
 }  // namespace
 
@@ -1337,8 +1334,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     const Geometry &g = scene.geometry;
     while (n > 0) {
         // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
-        scene.bvh.intersect_columns({b.ox, b.oy, b.oz, b.dx, b.dy, b.dz, b.tmin, b.tmax}, n,
-                                    {b.ht, b.hu, b.hv, b.prim});
+        scene.bvh.intersect_columns(ray_columns(b), n, {b.ht, b.hu, b.hv, b.prim});
         rays_traced += uint64_t(n);
         int n_last = 0;
         for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
