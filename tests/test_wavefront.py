@@ -597,3 +597,15 @@ def test19_one_mesh_light_picked_in_lanes(tmp_path, monkeypatch, light, extra):
     wavefront, scalar = render_both(scene, monkeypatch, spp=8, seed=11)
     assert float(scalar.mean()) > 0.005
     assert torch.equal(wavefront, scalar)
+
+
+@pytest.mark.parametrize("sensor", [
+    {"type": "orthographic"}, {"type": "thinlens", "fov": 50, "aperture_radius": 0.05, "focus_distance": 3.0}])
+def test20_other_sensors_start_their_paths_alone(tmp_path, monkeypatch, sensor):
+    # The perspective sensor's camera rays are made in lanes; the others' one sample at a
+    # time, into the lanes each refill frees: the images must be the scalar integrator's.
+    d = room_dict(tmp_path, {"max_depth": 6})
+    d["sensor"] = {**sensor, "to_world": d["sensor"]["to_world"], "film": d["sensor"]["film"]}
+    wavefront, scalar = render_both(tr.load_dict(d), monkeypatch, spp=9, seed=4)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
