@@ -1039,6 +1039,15 @@ PathState<RGB<float>> load_path(const Batch &b, int k) {
     return path;
 }
 
+/// Store a ray and its path's stream into lane k.
+void store_ray(Batch &b, int k, const Ray &ray, const Sampler &sampler) {
+    b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
+    b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
+    b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
+    b.state[k] = sampler.pcg_state();
+    b.inc[k] = sampler.pcg_inc();
+}
+
 /// Store a path state, its next ray and its stream into lane k.
 void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &ray, const Sampler &sampler) {
     b.Lr[k] = path.L[0], b.Lg[k] = path.L[1], b.Lb[k] = path.L[2];
@@ -1048,11 +1057,7 @@ void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &r
     b.prev_pdf[k] = path.prev_pdf;
     b.prev_delta[k] = path.prev_delta;
     b.prev_px[k] = path.prev_p.x, b.prev_py[k] = path.prev_p.y, b.prev_pz[k] = path.prev_p.z;
-    b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
-    b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
-    b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-    b.state[k] = sampler.pcg_state();
-    b.inc[k] = sampler.pcg_inc();
+    store_ray(b, k, ray, sampler);
 }
 
 /// The perspective sensor's rays of samples [0, n) into lanes [first, first + n) of the batch,
@@ -1285,12 +1290,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 const WavefrontSample &s = samples[next + i];
                 Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
                 pos[next + i] = camera.sample_position(s.px, s.py, sampler);
-                Ray ray = camera.sample_ray(pos[next + i], sampler);
-                b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
-                b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
-                b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-                b.state[k] = sampler.pcg_state();
-                b.inc[k] = sampler.pcg_inc();
+                store_ray(b, k, camera.sample_ray(pos[next + i], sampler), sampler);
             }
         }
         for (int k = first; k < first + m; ++k) {
