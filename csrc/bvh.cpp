@@ -810,12 +810,8 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             float reach = radius + 1e-3f * (radius + norm(oc));
             near[k] = squared_norm(closest) > reach * reach ? 0 : 1;
         }
-        // The near rays listed (branch-free), tested in lanes, their hits kept in order.
-        int m = 0;
-        for (int k = 0; k < n; ++k) {
-            near_list[m] = k;
-            m += near[k];
-        }
+        // The near rays listed, tested in lanes, their hits kept in order.
+        const int m = simd::select_indices(near, n, 1, near_list);
         flat_sphere(s.center, s.radius, r, near_list, m, sphere_t, sphere_hit);
         for (int j = 0; j < m; ++j) {
             if (sphere_hit[j] == 0.f) continue;

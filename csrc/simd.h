@@ -56,4 +56,29 @@ inline int mask(V a) { return _mm_movemask_ps(a); }
 /// |a| in every lane.
 inline V abs(V a) { return and_not(set1(-0.f), a); }
 
+/// The indices k in [0, n) where values[k] == value, in increasing order, written to list
+/// (which must hold one more than their count); returns their count. With AVX-512, sixteen at a time by compressing a vector
+/// of indices (GCC does not vectorise the scalar loop's stores at a running position).
+inline int select_indices(const int *values, int n, int value, int *list) {
+    int m = 0, k = 0;
+#if defined(__AVX512F__)
+    __m512i index = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __m512i sixteen = _mm512_set1_epi32(16), want = _mm512_set1_epi32(value);
+    for (; k + 16 <= n; k += 16) {
+        const __mmask16 equal = _mm512_cmpeq_epi32_mask(_mm512_loadu_si512(values + k), want);
+        const int count = __builtin_popcount(equal);
+        // (Compressed in a register, then a masked store: a compressing store to memory is
+        // slow on AMD's Zen 4.)
+        _mm512_mask_storeu_epi32(list + m, __mmask16((1u << count) - 1u), _mm512_maskz_compress_epi32(equal, index));
+        m += count;
+        index = _mm512_add_epi32(index, sixteen);
+    }
+#endif
+    for (; k < n; ++k) {
+        list[m] = k;
+        m += values[k] == value;
+    }
+    return m;
+}
+
 }  // namespace rbpt::simd
