@@ -109,6 +109,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         }
     }
     if (!any_lanes) return std::nullopt;
+    for (const WavefrontScene::Material &m : ws.materials) ws.any_ggx = ws.any_ggx || (m.rough != 0.f && m.beckmann == 0.f);
     // The shade stage's constant lookups: per material whether its inputs are constants and
     // their values (read without the parameter log: the quick lookups run in renders
     // without one), and per primitive its material where it does not emit.
@@ -412,8 +413,9 @@ RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Ve
 
 /// Terms: GGX's (Microfacet::GGX); GGX's, or `stored` where beckmann_flag is 1
 /// (Microfacet::Stored: beckmann_stage computed them, as GCC does not vectorise the vertex
-/// stage with Beckmann's terms in it); Beckmann's (Microfacet::Beckmann).
-enum class Microfacet { GGX, Stored, Beckmann };
+/// stage with Beckmann's terms in it); `stored` in every lane (Microfacet::StoredOnly: no GGX
+/// BSDF in the scene); Beckmann's (Microfacet::Beckmann).
+enum class Microfacet { GGX, Stored, StoredOnly, Beckmann };
 template <Microfacet Terms>
 RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, float beckmann_flag,
                                  const MicrofacetTerms &stored, const float *tables, const Vec3 &wi,
@@ -425,6 +427,8 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
     if constexpr (Terms == Microfacet::Beckmann) {
         const MicrofacetTerms t = beckmann_terms(m.alpha, wi, wo);
         D = t.D, g_i = t.g_i, g = t.g;
+    } else if constexpr (Terms == Microfacet::StoredOnly) {
+        D = stored.D, g_i = stored.g_i, g = stored.g;
     } else {
         D = ggx_D(m.alpha, h), g_i = ggx_G1(m.alpha, wi, h), g = ggx_G1(m.alpha, wo, h);
     }
@@ -523,7 +527,7 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
 /// dielectrics (which sample no emitter), whether some are rough (0: none, 1: GGX only, 2:
-/// Beckmann too); NonMesh: whether some emitters have no mesh (the `constant` environment,
+/// Beckmann too, 3: Beckmann only); NonMesh: whether some emitters have no mesh (the `constant` environment,
 /// spheres: 1), or none has (2, with several lights). The code of the BSDFs and emitters a
 /// scene does not have is left out.
 template <bool OneLight, bool Delta, int Rough, int NonMesh>
@@ -556,7 +560,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const float diffuse = Delta || Rough ? m.diffuse : 1.f;
         const float mirror = Delta ? m.mirror : 0.f;
         const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
-        const float beckmann = Rough == 2 ? m.beckmann : 0.f;
+        const float beckmann = Rough >= 2 ? m.beckmann : 0.f;
         const float smooth = shade * (diffuse + rough);
         const bool draw_emitter = !Delta || diffuse + rough != 0.f;
         const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
@@ -659,7 +663,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Color3f f{up != 0.f ? a[0] * cos_term : 0.f, up != 0.f ? a[1] * cos_term : 0.f,
                   up != 0.f ? a[2] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
-        if constexpr (Rough) {
+        if constexpr (Rough == 1 || Rough == 2) {  // (Beckmann lanes: beckmann_emitter_stage's)
             RoughEval e = rough_eval<Microfacet::GGX>(m, plastic, 0.f, MicrofacetTerms{}, tables, wi, wo, a, s);
             f.v[0] = rough != 0.f ? e.r : f.v[0], f.v[1] = rough != 0.f ? e.g : f.v[1];
             f.v[2] = rough != 0.f ? e.b : f.v[2];
@@ -667,7 +671,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         }
         // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
         // of f, which was selected, would again become a boolean select).
-        if constexpr (Rough == 2) {
+        if constexpr (Rough >= 2) {
             // (What beckmann_emitter_stage needs to redo this for Beckmann lanes.)
             b.espdf[k] = es_pdf;
             b.obr[k] = b.br[k], b.obg[k] = b.bg[k], b.obb[k] = b.bb[k], b.sampled0[k] = sampled;
@@ -729,12 +733,15 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             // Rough: the reflection about a visible normal (GGX's, or Beckmann's from
             // beckmann_stage; roughplastic: where u1 picks the specular lobe, else the
             // cosine-weighted direction), weighted by value / pdf.
-            Vec3 normal = ggx_visible_normal(m.alpha, wi, u2);
-            if constexpr (Rough == 2) normal = select(beckmann != 0.f, Vec3{b.bmx[k], b.bmy[k], b.bmz[k]}, normal);
+            const Vec3 stored_normal{b.bmx[k], b.bmy[k], b.bmz[k]};
+            Vec3 normal = Rough == 3 ? stored_normal : ggx_visible_normal(m.alpha, wi, u2);
+            if constexpr (Rough == 2) normal = select(beckmann != 0.f, stored_normal, normal);
             Vec3 specular = reflect(wi, normal);
             float pick_base = u1 < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : plastic;
             Vec3 rwo = select(pick_base != 0.f, cos_wo, specular);
-            constexpr Microfacet terms = Rough == 2 ? Microfacet::Stored : Microfacet::GGX;
+            constexpr Microfacet terms = Rough == 3   ? Microfacet::StoredOnly
+                                         : Rough == 2 ? Microfacet::Stored
+                                                      : Microfacet::GGX;
             RoughEval e = rough_eval<terms>(m, plastic, beckmann, MicrofacetTerms{b.bD[k], b.bgi[k], b.bgo[k]},
                                             tables, wi, rwo, a, s);
             float rpdf = wi.z > 0.f ? e.pdf : 0.f;
@@ -807,7 +814,7 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
-    const int rough = ws.any_beckmann ? 2 : ws.any_rough ? 1 : 0;
+    const int rough = ws.any_beckmann ? (ws.any_ggx ? 2 : 3) : ws.any_rough ? 1 : 0;
     // The instance for NonMesh N (0, 1, 2) and the rough BSDFs. (No Beckmann instance with
     // several lights, one without a mesh, and delta BSDFs: wavefront_scene shades Beckmann
     // aside there.)
@@ -815,7 +822,8 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
         constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value;
         constexpr int N = decltype(non_mesh)::value;
         if constexpr (!O && D && N) return rough ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
-        else return rough == 2 ? vertex_stage<O, D, 2, N> : rough == 1 ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
+        else if (rough >= 2) return rough == 3 ? vertex_stage<O, D, 3, N> : vertex_stage<O, D, 2, N>;
+        else return rough == 1 ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
     };
     return with_flags([&](auto one_light, auto delta, auto env) -> VertexStage {
         constexpr bool O = decltype(one_light)::value, E = decltype(env)::value;

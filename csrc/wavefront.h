@@ -88,6 +88,7 @@ struct WavefrontScene {
     bool any_delta = false;           ///< whether some are mirrors or dielectrics
     bool any_rough = false;           ///< whether some are rough
     bool any_beckmann = false;        ///< whether some rough ones are Beckmann's
+    bool any_ggx = false;             ///< whether some rough ones are GGX's
     std::vector<float> tables;        ///< roughplastic tables (RoughPlasticTables), 64 per BSDF
     /// Per triangle, what its interactions read of its mesh (ShapeFlag bits).
     enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
