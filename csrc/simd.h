@@ -57,8 +57,9 @@ inline int mask(V a) { return _mm_movemask_ps(a); }
 inline V abs(V a) { return and_not(set1(-0.f), a); }
 
 /// The indices k in [0, n) where values[k] == value, in increasing order, written to list
-/// (which must hold one more than their count); returns their count. With AVX-512, sixteen at a time by compressing a vector
-/// of indices (GCC does not vectorise the scalar loop's stores at a running position).
+/// (which must hold n entries, or one more than their count); returns their count. With
+/// AVX-512, sixteen at a time by compressing a vector of indices (GCC does not vectorise the
+/// scalar loop's stores at a running position).
 inline int select_indices(const int *values, int n, int value, int *list) {
     int m = 0, k = 0;
 #if defined(__AVX512F__)

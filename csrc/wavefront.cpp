@@ -928,34 +928,55 @@ struct BeckmannSearches {
 /// number.
 int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     constexpr int B = WavefrontBatch;
-    // The lanes that sample (wi above the surface), packed: lane, wi, alpha, u2, whether the
-    // sample is the plastic's diffuse base (1: no normal).
-    alignas(64) int lane[B];
-    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B];
-    int count = 0, m = 0;
+    // The Beckmann lanes listed (their microfacet columns cleared for the others' selects).
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float *tables = ws.tables.data();
+    alignas(64) int flag[B];
+#pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
-        const WavefrontScene::Material &mat = ws.materials[size_t(b.mat[k])];
         b.bmx[k] = 0.f, b.bmy[k] = 0.f, b.bmz[k] = 1.f;
-        b.bD[k] = b.bgi[k] = b.bgo[k] = 0.f;
-        if (!b.shade[k] || mat.beckmann == 0.f) continue;
-        lanes[count++] = k;
-        Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
-        if (mat.twosided != 0 && wi.z < 0.f) wi.z = wi.z * -1.f;
-        if (!(wi.z > 0.f)) continue;
-        uint64_t state = b.state[k];
-        auto next = [&] { return uniform_float(pcg32_next(state, b.inc[k])); };
-        next(), next();  // the emitter sample's
-        const float u1 = next();
-        ux[m] = next();
-        uy[m] = next();
-        // (The vector stage's choice of lobe.)
-        const bool diffuse = mat.plastic != 0.f &&
-                             !(u1 < specular_probability(mat, transmittance(ws.tables.data(), mat.table, wi.z)));
-        lane[m] = k;
-        wx[m] = wi.x, wy[m] = wi.y, wz[m] = wi.z;
-        alpha[m] = mat.alpha;
-        base[m] = diffuse ? 1.f : 0.f;
-        ++m;
+        b.bD[k] = 0.f, b.bgi[k] = 0.f, b.bgo[k] = 0.f;
+        const float shade = b.shade[k] != 0 ? 1.f : 0.f;
+        flag[k] = mats[b.mat[k]].beckmann * shade != 0.f ? 1 : 0;
+    }
+    const int count = simd::select_indices(flag, n, 1, lanes);
+    // Those that sample (wi above the surface, in twosided's flipped frame), listed in turn.
+#pragma GCC ivdep
+    for (int j = 0; j < count; ++j) {
+        const int k = lanes[j];
+        const float wz = b.wiz[k];
+        const float side = mats[b.mat[k]].twosided != 0 && wz < 0.f ? -1.f : 1.f;
+        flag[j] = wz * side > 0.f ? 1 : 0;
+    }
+    alignas(64) int sampling[B];
+    const int m = simd::select_indices(flag, count, 1, sampling);
+    // Their lane, wi, alpha, u2 (from a copy of the lane's stream: the emitter sample's two
+    // numbers skipped, then u1 and u2) and whether the sample is the plastic's diffuse base
+    // (1: no normal; the vector stage's choice of lobe). (Packed first: with AVX2, GCC does
+    // not vectorise the gathers of a listed lane's 64-bit stream.)
+    alignas(64) int lane[B], mat[B];
+    alignas(64) uint64_t state[B], inc[B];
+    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B];
+    for (int j = 0; j < m; ++j) {
+        const int k = lanes[sampling[j]];
+        lane[j] = k, mat[j] = b.mat[k];
+        wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = b.wiz[k];
+        state[j] = b.state[k], inc[j] = b.inc[k];
+    }
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const WavefrontScene::Material &material = mats[mat[j]];
+        const float side = material.twosided != 0 && wz[j] < 0.f ? -1.f : 1.f;
+        wz[j] = wz[j] * side;
+        uint64_t s = state[j];
+        pcg32_next(s, inc[j]), pcg32_next(s, inc[j]);
+        const float u1 = uniform_float(pcg32_next(s, inc[j]));
+        ux[j] = uniform_float(pcg32_next(s, inc[j]));
+        uy[j] = uniform_float(pcg32_next(s, inc[j]));
+        const float t_i = transmittance(tables, material.table, wz[j]);
+        const float specular = u1 < specular_probability(material, t_i) ? 1.f : 0.f;
+        alpha[j] = material.alpha;
+        base[j] = material.plastic != 0.f && specular == 0.f ? 1.f : 0.f;
     }
     // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes and the
     // base's lanes search nothing).
