@@ -210,6 +210,15 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
+    for (size_t t = 0; t < ws.face_normals.size(); ++t) {
+        for (int j = 0; j < 3; ++j) {
+            for (int a = 0; a < 3; ++a) {
+                ws.tri_vertex[3 * j + a].push_back(ws.vertices[3 * t + size_t(j)][a]);
+                ws.tri_normal[3 * j + a].push_back(ws.normals[3 * t + size_t(j)][a]);
+            }
+        }
+        for (int a = 0; a < 3; ++a) ws.tri_face_normal[a].push_back(ws.face_normals[t][a]);
+    }
     return ws;
 }
 
@@ -538,8 +547,9 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // would become a masked load of one address, which GCC does not vectorise.)
     const WavefrontScene::Light first = ws.lights[0];
     const float *cdfs = ws.cdf.data();
-    const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
-    const Vec3 *face_normals = ws.face_normals.data();
+    const float *tri_vertex[9], *tri_normal[9], *tri_face_normal[3];
+    for (int i = 0; i < 9; ++i) tri_vertex[i] = ws.tri_vertex[i].data(), tri_normal[i] = ws.tri_normal[i].data();
+    for (int a = 0; a < 3; ++a) tri_face_normal[a] = ws.tri_face_normal[a].data();
     const float *tables = ws.tables.data();
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
@@ -605,9 +615,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const int t = Meshes ? 8 * index + int(local) : 0;  // the triangle, in the flat arrays
         Vec2 bc = warp::square_to_uniform_triangle(u);
         float b0 = 1.f - bc.x - bc.y;
-        Vec3 lp = vertices[3 * t] * b0 + vertices[3 * t + 1] * bc.x + vertices[3 * t + 2] * bc.y;
-        Vec3 face_n{face_normals[t].x, face_normals[t].y, face_normals[t].z};
-        Vec3 vn = normalize(normals[3 * t] * b0 + normals[3 * t + 1] * bc.x + normals[3 * t + 2] * bc.y);
+        auto column = [t](const float *const *c) { return Vec3{c[0][t], c[1][t], c[2][t]}; };
+        Vec3 lp = column(tri_vertex) * b0 + column(tri_vertex + 3) * bc.x + column(tri_vertex + 6) * bc.y;
+        Vec3 face_n = column(tri_face_normal);
+        Vec3 vn = normalize(column(tri_normal) * b0 + column(tri_normal + 3) * bc.x + column(tri_normal + 6) * bc.y);
         if constexpr (OneLight) {
             lp = Vec3{b.lpx[k], b.lpy[k], b.lpz[k]};
             face_n = Vec3{b.lfx[k], b.lfy[k], b.lfz[k]};

@@ -113,6 +113,10 @@ struct WavefrontScene {
     std::vector<Vec3> vertices;  ///< 3 per triangle
     std::vector<Vec3> normals;   ///< vertex normals, 3 per triangle (zero without them)
     std::vector<Vec3> face_normals;  ///< Triangle::n, 1 per triangle
+    /// The same as columns, one per vertex and axis, which the vector stage gathers from
+    /// (gathers of a Vec3's members GCC makes lane by lane): vertex j's axis a of triangle t
+    /// at tri_vertex[3 j + a][t], likewise tri_normal; tri_face_normal[a][t].
+    std::vector<float> tri_vertex[9], tri_normal[9], tri_face_normal[3];
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else
