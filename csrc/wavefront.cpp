@@ -1498,7 +1498,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
-            for (int k = 0; k < n; ++k) {
+            for (int k = 0; ws.any_delta && k < n; ++k) {
                 if (!b.shade[k] || ws.materials[size_t(b.mat[k])].lane != WavefrontScene::Glass) continue;
                 int unused = b.refracts[k] != 0.f ? b.record_reflect[k] : b.record_refract[k];
                 if (unused >= 0) record->vertices[size_t(unused)].seq = -1;
