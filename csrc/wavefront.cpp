@@ -109,7 +109,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         }
     }
     if (!any_lanes) return std::nullopt;
-    for (const WavefrontScene::Material &m : ws.materials) ws.any_ggx = ws.any_ggx || (m.rough != 0.f && m.beckmann == 0.f);
+    for (const WavefrontScene::Material &m : ws.materials)
+        ws.any_ggx = ws.any_ggx || (m.rough != 0.f && m.beckmann == 0.f);
     // The shade stage's constant lookups: per material whether its inputs are constants and
     // their values (read without the parameter log: the quick lookups run in renders
     // without one), and per primitive its material where it does not emit.
@@ -536,9 +537,9 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
 /// dielectrics (which sample no emitter), whether some are rough (0: none, 1: GGX only, 2:
-/// Beckmann too, 3: Beckmann only); NonMesh: whether some emitters have no mesh (the `constant` environment,
-/// spheres: 1), or none has (2, with several lights). The code of the BSDFs and emitters a
-/// scene does not have is left out.
+/// Beckmann too, 3: Beckmann only); NonMesh: whether some emitters have no mesh (the
+/// `constant` environment, spheres: 1), or none has (2, with several lights). The code of the
+/// BSDFs and emitters a scene does not have is left out.
 template <bool OneLight, bool Delta, int Rough, int NonMesh>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg) {
     const WavefrontScene::Material *mats = ws.materials.data();
