@@ -163,11 +163,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     // arrays, which the vector stage gathers from and ignores.
     auto unit_triangle = [&ws]() {
         for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
-        for (int t = 0; t < 8; ++t) {
-            ws.vertices.insert(ws.vertices.end(), {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}});
-            ws.normals.insert(ws.normals.end(), 3, Vec3());
-            ws.face_normals.push_back(Vec3{0.f, 0.f, 1.f});
-        }
+        const Vec3 p[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, n[3];
+        for (int t = 0; t < 8; ++t) ws.add_light_triangle(p, n, Vec3{0.f, 0.f, 1.f});
     };
     for (const Emitter &e : scene.emitters) {
         WavefrontScene::Light light;
@@ -202,23 +199,15 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         for (uint32_t i = 0; i < 9; ++i) ws.cdf.push_back(i <= shape.tri_count ? shape.tri_cdf[i] : 2.f);
         for (uint32_t t = 0; t < 8; ++t) {
             const Triangle &tri = g.triangles[shape.tri_begin + std::min(t, shape.tri_count - 1)];
+            Vec3 p[3], n[3];
             for (int j = 0; j < 3; ++j) {
-                ws.vertices.push_back(g.positions[tri.v[j]]);
-                ws.normals.push_back(shape.has_normals ? g.normals[tri.v[j]] : Vec3());
+                p[j] = g.positions[tri.v[j]];
+                n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
             }
-            ws.face_normals.push_back(tri.n);
+            ws.add_light_triangle(p, n, tri.n);
         }
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
-    }
-    for (size_t t = 0; t < ws.face_normals.size(); ++t) {
-        for (int j = 0; j < 3; ++j) {
-            for (int a = 0; a < 3; ++a) {
-                ws.tri_vertex[3 * j + a].push_back(ws.vertices[3 * t + size_t(j)][a]);
-                ws.tri_normal[3 * j + a].push_back(ws.normals[3 * t + size_t(j)][a]);
-            }
-        }
-        for (int a = 0; a < 3; ++a) ws.tri_face_normal[a].push_back(ws.face_normals[t][a]);
     }
     return ws;
 }
@@ -475,6 +464,19 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
     return e;
 }
 
+/// The lights' triangles (WavefrontScene::tri_vertex, tri_normal, tri_face_normal) read as
+/// Vec3s: triangle t's vertex j, its vertex normal, its face normal.
+struct LightTriangles {
+    const float *p[9], *n[9], *face[3];
+    explicit LightTriangles(const WavefrontScene &ws) {
+        for (int i = 0; i < 9; ++i) p[i] = ws.tri_vertex[i].data(), n[i] = ws.tri_normal[i].data();
+        for (int a = 0; a < 3; ++a) face[a] = ws.tri_face_normal[a].data();
+    }
+    RBPT_INLINE Vec3 vertex(int j, int t) const { return {p[3 * j][t], p[3 * j + 1][t], p[3 * j + 2][t]}; }
+    RBPT_INLINE Vec3 normal(int j, int t) const { return {n[3 * j][t], n[3 * j + 1][t], n[3 * j + 2][t]}; }
+    RBPT_INLINE Vec3 face_normal(int t) const { return {face[0][t], face[1][t], face[2][t]}; }
+};
+
 /// With one light: each lane's emitter sample's two numbers (vertex_stage's first draws) and
 /// the point they give on the light's mesh (its first Tris triangles; the rest are padding),
 /// with its face normal and interpolated vertex normal, in a loop of their own. The light's
@@ -489,8 +491,7 @@ template <bool Delta, int Tris>
 __attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *cdf = ws.cdf.data();  // (the first light's entries)
-    const Vec3 *vertices = ws.vertices.data(), *normals = ws.normals.data();
-    const Vec3 *face_normals = ws.face_normals.data();
+    const LightTriangles tris(ws);
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
@@ -520,9 +521,9 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
         Vec3 lp, face_n, ln;
 #pragma GCC unroll 8
         for (int i = 0; i < Tris; ++i) {
-            Vec3 p_i = vertices[3 * i] * b0 + vertices[3 * i + 1] * bc.x + vertices[3 * i + 2] * bc.y;
-            Vec3 n_i = normals[3 * i] * b0 + normals[3 * i + 1] * bc.x + normals[3 * i + 2] * bc.y;
-            lp = lp + p_i * is[i], ln = ln + n_i * is[i], face_n = face_n + face_normals[i] * is[i];
+            Vec3 p_i = tris.vertex(0, i) * b0 + tris.vertex(1, i) * bc.x + tris.vertex(2, i) * bc.y;
+            Vec3 n_i = tris.normal(0, i) * b0 + tris.normal(1, i) * bc.x + tris.normal(2, i) * bc.y;
+            lp = lp + p_i * is[i], ln = ln + n_i * is[i], face_n = face_n + tris.face_normal(i) * is[i];
         }
         Vec3 vn = normalize(ln);
         b.lpx[k] = lp.x, b.lpy[k] = lp.y, b.lpz[k] = lp.z;
@@ -548,9 +549,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // would become a masked load of one address, which GCC does not vectorise.)
     const WavefrontScene::Light first = ws.lights[0];
     const float *cdfs = ws.cdf.data();
-    const float *tri_vertex[9], *tri_normal[9], *tri_face_normal[3];
-    for (int i = 0; i < 9; ++i) tri_vertex[i] = ws.tri_vertex[i].data(), tri_normal[i] = ws.tri_normal[i].data();
-    for (int a = 0; a < 3; ++a) tri_face_normal[a] = ws.tri_face_normal[a].data();
+    const LightTriangles tris(ws);
     const float *tables = ws.tables.data();
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
@@ -616,10 +615,9 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const int t = Meshes ? 8 * index + int(local) : 0;  // the triangle, in the flat arrays
         Vec2 bc = warp::square_to_uniform_triangle(u);
         float b0 = 1.f - bc.x - bc.y;
-        auto column = [t](const float *const *c) { return Vec3{c[0][t], c[1][t], c[2][t]}; };
-        Vec3 lp = column(tri_vertex) * b0 + column(tri_vertex + 3) * bc.x + column(tri_vertex + 6) * bc.y;
-        Vec3 face_n = column(tri_face_normal);
-        Vec3 vn = normalize(column(tri_normal) * b0 + column(tri_normal + 3) * bc.x + column(tri_normal + 6) * bc.y);
+        Vec3 lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
+        Vec3 face_n = tris.face_normal(t);
+        Vec3 vn = normalize(tris.normal(0, t) * b0 + tris.normal(1, t) * bc.x + tris.normal(2, t) * bc.y);
         if constexpr (OneLight) {
             lp = Vec3{b.lpx[k], b.lpy[k], b.lpz[k]};
             face_n = Vec3{b.lfx[k], b.lfy[k], b.lfz[k]};
@@ -953,12 +951,14 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     }
     const int count = simd::select_indices(flag, n, 1, lanes);
     // Those that sample (wi above the surface, in twosided's flipped frame), listed in turn.
+    alignas(64) float flipped_wz[B];
 #pragma GCC ivdep
     for (int j = 0; j < count; ++j) {
         const int k = lanes[j];
         const float wz = b.wiz[k];
         const float side = mats[b.mat[k]].twosided != 0 && wz < 0.f ? -1.f : 1.f;
-        flag[j] = wz * side > 0.f ? 1 : 0;
+        flipped_wz[j] = wz * side;
+        flag[j] = flipped_wz[j] > 0.f ? 1 : 0;
     }
     alignas(64) int sampling[B];
     const int m = simd::select_indices(flag, count, 1, sampling);
@@ -972,14 +972,12 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     for (int j = 0; j < m; ++j) {
         const int k = lanes[sampling[j]];
         lane[j] = k, mat[j] = b.mat[k];
-        wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = b.wiz[k];
+        wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = flipped_wz[sampling[j]];
         state[j] = b.state[k], inc[j] = b.inc[k];
     }
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
-        const float side = material.twosided != 0 && wz[j] < 0.f ? -1.f : 1.f;
-        wz[j] = wz[j] * side;
         uint64_t s = state[j];
         pcg32_next(s, inc[j]), pcg32_next(s, inc[j]);
         const float u1 = uniform_float(pcg32_next(s, inc[j]));

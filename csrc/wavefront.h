@@ -109,14 +109,18 @@ struct WavefrontScene {
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t. (The
     // environment's and the spheres' entries are a unit triangle, gathered and ignored.)
-    std::vector<float> cdf;      ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)
-    std::vector<Vec3> vertices;  ///< 3 per triangle
-    std::vector<Vec3> normals;   ///< vertex normals, 3 per triangle (zero without them)
-    std::vector<Vec3> face_normals;  ///< Triangle::n, 1 per triangle
-    /// The same as columns, one per vertex and axis, which the vector stage gathers from
-    /// (gathers of a Vec3's members GCC makes lane by lane): vertex j's axis a of triangle t
-    /// at tri_vertex[3 j + a][t], likewise tri_normal; tri_face_normal[a][t].
+    std::vector<float> cdf;  ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)
+    /// The triangles as columns, one per vertex and axis (gathers of a Vec3's members GCC
+    /// makes lane by lane): vertex j's axis a of triangle t at tri_vertex[3 j + a][t], likewise
+    /// its vertex normal (zero without them) in tri_normal; Triangle::n in tri_face_normal[a].
     std::vector<float> tri_vertex[9], tri_normal[9], tri_face_normal[3];
+    /// Append a triangle: its vertices p, vertex normals n and face normal.
+    void add_light_triangle(const Vec3 p[3], const Vec3 n[3], const Vec3 &face) {
+        for (int j = 0; j < 3; ++j) {
+            for (int a = 0; a < 3; ++a) tri_vertex[3 * j + a].push_back(p[j][a]), tri_normal[3 * j + a].push_back(n[j][a]);
+        }
+        for (int a = 0; a < 3; ++a) tri_face_normal[a].push_back(face[a]);
+    }
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else
