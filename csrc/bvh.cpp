@@ -272,7 +272,7 @@ struct Collapser {
         // most rays of a closed room start inside it; cbox 10% faster). Deeper in a larger
         // tree, a mesh's leaves stay whole: opened, they double the packs (the bunny's 9.8k
         // packs of 7 triangles on average become 21k of 3, 3.5 MB become 7.5), and a ray
-        // entering a leaf of small triangles mostly enters both halves (the bunny 4-8% slower).
+        // entering a leaf of small triangles mostly enters both halves (the bunny 3-11% slower).
         uint32_t kids[BVHWidth] = {b + 1, bin[b].offset};
         int n = 2;
         for (bool open_leaves : {false, true}) {
