@@ -1303,8 +1303,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     if (record) record->tape.assign(size_t(n_samples), 0), record->vertices.clear();
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own).
-    static thread_local Batch b, side;
-    static thread_local int side_lane[B], beckmann_lane[B];
+    // (Bound once: each access of a thread_local in a shared library calls __tls_get_addr,
+    // 1-1.5% of a cbox render when the loop and its lambdas named them directly.)
+    static thread_local Batch batch_storage, side_storage;
+    static thread_local int side_lane_storage[B], beckmann_lane_storage[B];
+    Batch &b = batch_storage, &side = side_storage;
+    int *const side_lane = side_lane_storage, *const beckmann_lane = beckmann_lane_storage;
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
@@ -1536,14 +1540,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // paths that ended hand back their radiance, the rest move up.
         const bool shadow_lanes = ws.any_sphere_lights && scene.bvh.flat();
         if (shadow_lanes) shadow_rays_in_lanes(b, n, scene.bvh);
-        int live = 0;
+        int live = 0, n_shadow = 0;
         for (int k = 0; k < n; ++k) {
             if (b.shadow[k]) {
                 Ray ray;
                 ray.o = {b.sox[k], b.soy[k], b.soz[k]};
                 ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
                 ray.tmax = b.stmax[k];
-                if (shadow_lanes || !scene.occluded(ray)) {
+                ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
+                if (shadow_lanes || !scene.bvh.occluded(ray)) {
                     b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
                     const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
                     if (log && b.record_rough[k] >= 0) {
@@ -1567,6 +1572,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             if (live != k) move_lane(b, k, b, live);
             ++live;
         }
+        if (!shadow_lanes) rays_traced += uint64_t(n_shadow);
         // The paths that go on take their next vertex; the next samples start in the lanes
         // freed (or in the whole batch, once drained, without refill).
         for (int k = 0; k < live; ++k) ++b.depth[k];
