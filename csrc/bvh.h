@@ -113,6 +113,8 @@ private:
     bool traverse(const Ray &ray, Hit *hit) const;
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
     bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
+    /// occluded() for a tree of one node.
+    bool occluded_one_node(const Ray &ray) const;
 
     /// The flat tree's primitives (empty unless flat()): triangle vertices with their ids,
     /// and the ids of the spheres.
