@@ -587,9 +587,9 @@ struct TestRays {
 
 /// Whether each ray, given as it is, is blocked in its interval (for tests): from
 /// BVH::occluded per ray, or from BVH::occluded_columns in batches of BVH::MaxColumns
-/// (`columns`).
+/// (`columns`), or from BVH::occluded_traversal per ray (`traversal`).
 torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
-                            torch::Tensor tmin, torch::Tensor tmax, bool columns) {
+                            torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal) {
     const TestRays rays(origins, directions, tmin, tmax);
     torch::Tensor blocked = torch::empty({rays.n}, torch::kBool);
     std::vector<int> flags(size_t(rays.n));
@@ -599,7 +599,10 @@ torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Te
             scene.bvh.occluded_columns(rays.from(b), m, flags.data() + b);
             continue;
         }
-        for (int k = 0; k < m; ++k) flags[size_t(b + k)] = scene.bvh.occluded(rays.from(b).ray(k));
+        for (int k = 0; k < m; ++k) {
+            const Ray ray = rays.from(b).ray(k);
+            flags[size_t(b + k)] = traversal ? scene.bvh.occluded_traversal(ray) : scene.bvh.occluded(ray);
+        }
     }
     for (int64_t i = 0; i < rays.n; ++i) blocked.data_ptr<bool>()[i] = flags[size_t(i)] != 0;
     return blocked;
@@ -607,9 +610,10 @@ torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Te
 
 /// Closest hits of rays given as they are (no normalisation), with their intervals (for
 /// tests): (t, prim (-1: none), u, v), from BVH::intersect per ray, or from
-/// BVH::intersect_columns in batches of BVH::MaxColumns (`columns`).
+/// BVH::intersect_columns in batches of BVH::MaxColumns (`columns`), or from
+/// BVH::intersect_traversal per ray (`traversal`).
 py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
-                       torch::Tensor tmin, torch::Tensor tmax, bool columns) {
+                       torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal) {
     const TestRays rays(origins, directions, tmin, tmax);
     const int64_t n = rays.n;
     torch::Tensor t = torch::empty({n}, torch::kFloat32), u = torch::empty({n}, torch::kFloat32),
@@ -624,7 +628,8 @@ py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor 
         }
         for (int k = 0; k < m; ++k) {
             Hit hit;
-            scene.bvh.intersect(rays.from(b).ray(k), &hit);
+            const Ray ray = rays.from(b).ray(k);
+            traversal ? scene.bvh.intersect_traversal(ray, &hit) : scene.bvh.intersect(ray, &hit);
             hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
         }
     }
@@ -978,8 +983,10 @@ PYBIND11_MODULE(_C, m) {
     m.def("bsdf_query", &bsdf_query);
     m.def("intersect_rays", &intersect_rays);
     m.def("interact_rays", &interact_rays);
-    m.def("closest_hits", &closest_hits);
-    m.def("occluded_rays", &occluded_rays);
+    m.def("closest_hits", &closest_hits, py::arg("scene"), py::arg("origins"), py::arg("directions"),
+          py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false);
+    m.def("occluded_rays", &occluded_rays, py::arg("scene"), py::arg("origins"), py::arg("directions"),
+          py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false);
     m.def("sample_count", [](const py::dict &camera, int spp) {
         SamplerDesc s = make_sampler(camera);
         set_spp(s, spp);

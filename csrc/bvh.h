@@ -103,6 +103,14 @@ public:
     /// node and a pack or two.
     bool flat() const { return !flat_triangles_.empty(); }
 
+    /// intersect() and occluded() through the general traversal, whatever the tree (in a tree
+    /// of one node those two take a shortcut with the same answers), for tests.
+    bool intersect_traversal(const Ray &ray, Hit *hit) const { return traverse<false>(ray, hit); }
+    bool occluded_traversal(const Ray &ray) const {
+        Hit unused;
+        return traverse<true>(ray, &unused);
+    }
+
     /// Number of BVHWidth-wide nodes.
     size_t node_count() const { return nodes_.size(); }
     /// SAH cost of the binary tree before collapsing (traversal 1, intersection 1), for tests.
@@ -113,6 +121,8 @@ private:
     bool traverse(const Ray &ray, Hit *hit) const;
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
     bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
+    /// intersect() for a tree of one node.
+    bool intersect_one_node(const Ray &ray, Hit *hit) const;
     /// occluded() for a tree of one node.
     bool occluded_one_node(const Ray &ray) const;
 

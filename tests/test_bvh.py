@@ -133,19 +133,11 @@ def _small_scene(far_cube=False):
     })
 
 
-@pytest.mark.parametrize("far_cube", [False, True])
-def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
-    # A small scene's rays are tested against every primitive in SIMD lanes
-    # (BVH::intersect_columns); each hit (t, primitive, barycentrics) must be the traversal's,
-    # also for rays through the cube's vertices and edges (exact ties, edge functions exactly
-    # zero), rays starting on surfaces, bounded intervals, and non-finite or zero rays. Beyond
-    # 16 triangles the bound on t's rounding error is applied to each ray's nearest hit alone
-    # (BVH::flat_rounding_check): the far cube's case.
-    scene = _small_scene(far_cube)
-    if far_cube and not scene._native.bvh_flat:
-        pytest.skip("this build keeps at most 16 triangles flat (8-float vectors)")
-    assert scene._native.bvh_flat and scene._native.bvh_node_count == 1
-    rng = np.random.default_rng(5)
+def _small_scene_rays(rng):
+    """Rays for _small_scene(): 5000 towards the scene, many of them aimed at the cube's
+    vertices and edges (exact ties, edge functions exactly zero) and at the decal (ties
+    between leaves), along the axes, from the quad's surface, non-finite or zero, some with
+    bounded intervals: (o, d, tmin, tmax) as float tensors."""
     n = 5000
     o = rng.normal(size=(n, 3)) * 3
     d = rng.uniform(-1.5, 1.5, size=(n, 3)) - o  # towards the scene
@@ -177,7 +169,25 @@ def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
     d[k + 302] = 0
     tmin = np.where(rng.random(n) < 0.1, rng.random(n), 0.0)
     tmax = np.where(rng.random(n) < 0.2, rng.random(n) * 4, np.inf)
-    args = [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
+    return [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
+
+
+@pytest.mark.parametrize("far_cube", [False, True])
+def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
+    # A small scene's rays are tested against every primitive in SIMD lanes
+    # (BVH::intersect_columns); each hit (t, primitive, barycentrics) must be the traversal's,
+    # also for rays through the cube's vertices and edges (exact ties, edge functions exactly
+    # zero), rays starting on surfaces, bounded intervals, and non-finite or zero rays. Beyond
+    # 16 triangles the bound on t's rounding error is applied to each ray's nearest hit alone
+    # (BVH::flat_rounding_check): the far cube's case.
+    scene = _small_scene(far_cube)
+    if far_cube and not scene._native.bvh_flat:
+        pytest.skip("this build keeps at most 16 triangles flat (8-float vectors)")
+    assert scene._native.bvh_flat and scene._native.bvh_node_count == 1
+    rng = np.random.default_rng(5)
+    args = _small_scene_rays(rng)
+    o, d, tmin, tmax = (a.double().numpy() for a in args)
+    n = len(o)
     flat = tr._C.closest_hits(scene._native, *args, True)
     traversal = tr._C.closest_hits(scene._native, *args, False)
     assert int((traversal[1] >= 0).sum()) > 3000
@@ -262,3 +272,44 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     assert 500 < int(blocked.sum()) < n - 500
     assert torch.equal(blocked, hit)
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, True), blocked)
+
+
+@pytest.mark.parametrize("far_cube", [False, True])
+def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
+    # In a tree of one node, BVH::intersect and BVH::occluded test the children the ray enters
+    # without the general traversal's stack (intersect_one_node, occluded_one_node): the
+    # closest hits (t, primitive, barycentrics; ties go to the child the traversal visits
+    # first) and the blocked rays must be the traversal's, bit for bit. Also in a scene of
+    # one node with a disk and a cylinder, which is not flat (the renderer's closest hits
+    # take the shortcut there too).
+    scenes = [_small_scene(far_cube)]
+    if not far_cube:
+        scenes.append(tr.load_dict({
+            "type": "scene",
+            "box": {"type": "cube", "to_world": tr.Transform.translate([0.5, 0, 0]).scale(0.5)},
+            "quad": {"type": "rectangle", "to_world": tr.Transform.translate([0, -1, 0]).rotate([1, 0, 0], -90).scale(3)},
+            "disk": {"type": "disk", "to_world": tr.Transform.translate([-1, 0.5, 0]).rotate([0, 1, 0], 30).scale(0.6)},
+            "tube": {"type": "cylinder", "p0": [0.5, 1.0, -1.0], "p1": [0.5, 1.0, 1.0], "radius": 0.3},
+            "ball": {"type": "sphere", "center": [-1.0, -0.5, 0.5], "radius": 0.4},
+        }))
+        assert not scenes[1]._native.bvh_flat
+    rng = np.random.default_rng(9)
+    for scene in scenes:
+        assert scene._native.bvh_node_count == 1
+        args = _small_scene_rays(rng)
+        shortcut = tr._C.closest_hits(scene._native, *args, False)
+        traversal = tr._C.closest_hits(scene._native, *args, False, traversal=True)
+        assert int((traversal[1] >= 0).sum()) > 2500
+        for a, b in zip(shortcut, traversal):
+            assert torch.equal(a.nan_to_num(), b.nan_to_num())
+        # Shadow rays: the same rays, and each ending just short of its nearest hit (a
+        # rounding before or after it, where the box tests decide).
+        blocked = tr._C.occluded_rays(scene._native, *args, False)
+        assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *args, False, traversal=True))
+        t_hit = traversal[0].double()
+        for scale in (1 - 1e-6, 1.0, 1 + 1e-6):
+            ends = torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
+            rays = [args[0], args[1], args[2], ends]
+            blocked = tr._C.occluded_rays(scene._native, *rays, False)
+            assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, traversal=True))
+            assert int(blocked.sum()) > (1000 if scale > 1 else -1)
