@@ -990,14 +990,14 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     }
     // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes and the
     // base's lanes search nothing).
-    alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], erf_cot[B], normalization[B];
+    alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], normalization[B];
     alignas(64) float sa[B], sb[B], sc[B], s_inv[B], s_u1[B], s_done[B];
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const BeckmannSlopes slopes(normalize(Vec3{alpha[j] * wx[j], alpha[j] * wy[j], wz[j]}));
         const BeckmannSlopes::Search s = slopes.start(ux[j]);
         cos_phi[j] = slopes.cos_phi, sin_phi[j] = slopes.sin_phi, polar[j] = slopes.polar;
-        tan_i[j] = slopes.tan_i, erf_cot[j] = slopes.erf_cot, normalization[j] = slopes.normalization;
+        tan_i[j] = slopes.tan_i, normalization[j] = slopes.normalization;
         sa[j] = s.a, sb[j] = s.b, sc[j] = s.c, s_inv[j] = s.inv_erf, s_u1[j] = s.u1;
         s_done[j] = polar[j] != 0.f || base[j] != 0.f ? 1.f : s.converged;
     }
