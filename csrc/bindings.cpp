@@ -960,6 +960,7 @@ PYBIND11_MODULE(_C, m) {
                                [](const Scene &s) { return s.geometry.triangles.size(); })
         .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
         .def_property_readonly("bvh_flat", [](const Scene &s) { return s.bvh.flat(); })
+        .def_property_readonly("bvh_two_phase", [](const Scene &s) { return s.bvh.two_phase(); })
         .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); });
     m.def("render_fwd", &render_image, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,

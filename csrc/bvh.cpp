@@ -391,6 +391,51 @@ void BVH::build(const Geometry &geometry) {
             }
         }
         if (flat_triangles_.empty()) flat_spheres_.clear();  // (flat() means some triangles)
+    }
+    two_phase_ = false;
+    root_packs_.clear();
+    inner_box_.clear();
+    root_inner_mask_ = 0;
+    // A larger tree whose root has leaves of triangles only, at most FlatTriangles (a room's
+    // walls and lights around a detailed mesh), is searched in two phases: those leaves'
+    // triangles in lanes (as a flat tree's), then the rest of the tree (see two_phase()).
+    if (nodes_.size() > 1) {
+        bool ok = true;
+        std::vector<FlatTriangle> tris;
+        for (int c = 0; c < BVHWidth; ++c) {
+            const uint32_t ref = nodes_[0].child[c];
+            if (ref == EmptyChild) continue;
+            if (!(ref & LeafBit)) {
+                root_inner_mask_ |= 1u << c;
+                for (int axis = 0; axis < 3; ++axis) inner_box_.push_back(nodes_[0].lo[axis][c]);
+                for (int axis = 0; axis < 3; ++axis) inner_box_.push_back(nodes_[0].hi[axis][c]);
+                continue;
+            }
+            const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
+            for (uint32_t p = first; p < last; ++p) {
+                const PrimPack &pack = packs_[p];
+                ok = ok && pack.spheres == 0 && pack.others == 0;
+                root_packs_.push_back(p);
+                for (int lane = 0; lane < BVHWidth; ++lane) {
+                    if (!(pack.triangles >> lane & 1)) continue;
+                    FlatTriangle t;
+                    for (int k = 0; k < 3; ++k)
+                        for (int axis = 0; axis < 3; ++axis) t.v[k][axis] = pack.tris.v[k][axis][lane];
+                    t.prim = pack.prim[lane];
+                    tris.push_back(t);
+                }
+            }
+        }
+        if (ok && !tris.empty() && tris.size() <= size_t(FlatTriangles)) {
+            two_phase_ = true;
+            flat_triangles_ = tris;
+            flat_spheres_.clear();
+        } else {
+            root_packs_.clear();
+            root_inner_mask_ = 0;
+        }
+    }
+    if (!flat_triangles_.empty()) {
         // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
         const size_t n = flat_triangles_.size();
         flat_coords_.resize(9 * n);
@@ -430,7 +475,7 @@ struct NodeTest {
     }
 };
 
-template <bool AnyHit>
+template <bool AnyHit, bool InnerOnly>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (nodes_.empty()) return false;
     // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
@@ -454,6 +499,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
             const BVHNode &node = nodes_[ref];
             alignas(32) float t_entry[BVHWidth];
             int mask = node_test(node, tmax, t_entry);
+            if (InnerOnly && ref == 0) mask &= int(root_inner_mask_);
             if (mask) {
                 // Start loading the hit children now: traversal is bound by memory latency.
                 for (int m = mask; m; m &= m - 1) {
@@ -569,7 +615,76 @@ bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit
     return found;
 }
 
+/// Whether each ray enters one of the root's inner children's boxes before min(its tmax,
+/// limit[k]): NodeTest's operations lane by lane (so the per-ray traversal's decision).
+void BVH::enters_inner(const RayColumns &r, int n, const float *limit, int *enters) const {
+    alignas(64) float inv_x[MaxColumns], inv_y[MaxColumns], inv_z[MaxColumns], tmax[MaxColumns];
+    const float *q_dx = r.dx, *q_dy = r.dy, *q_dz = r.dz, *q_tmax = r.tmax;
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        inv_x[k] = 1.f / q_dx[k], inv_y[k] = 1.f / q_dy[k], inv_z[k] = 1.f / q_dz[k];
+        tmax[k] = q_tmax[k] < limit[k] ? q_tmax[k] : limit[k];
+        enters[k] = 0;
+    }
+    const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_tmin = r.tmin;
+    for (size_t c = 0; c + 6 <= inner_box_.size(); c += 6) {
+        const float lx = inner_box_[c], ly = inner_box_[c + 1], lz = inner_box_[c + 2];
+        const float hx = inner_box_[c + 3], hy = inner_box_[c + 4], hz = inner_box_[c + 5];
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            // (NodeTest's operations: the near and far planes by the sign of 1 / d.)
+            const float ix = inv_x[k], iy = inv_y[k], iz = inv_z[k];
+            const float nx = std::signbit(ix) ? hx : lx, fx = std::signbit(ix) ? lx : hx;
+            const float ny = std::signbit(iy) ? hy : ly, fy = std::signbit(iy) ? ly : hy;
+            const float nz = std::signbit(iz) ? hz : lz, fz = std::signbit(iz) ? lz : hz;
+            float t0 = q_tmin[k], t1 = tmax[k];
+            float tn = (nx - q_ox[k]) * ix, tf = (fx - q_ox[k]) * ix;
+            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
+            tn = (ny - q_oy[k]) * iy, tf = (fy - q_oy[k]) * iy;
+            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
+            tn = (nz - q_oz[k]) * iz, tf = (fz - q_oz[k]) * iz;
+            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
+            enters[k] |= t0 <= t1 * BoxWiden ? 1 : 0;
+        }
+    }
+}
+
+bool BVH::intersect_two_phase(const Ray &ray, Hit *hit) const {
+    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    const RayPrecompPack pc(ray);
+    Ray rest = ray;
+    bool found = false;
+    for (uint32_t p : root_packs_) {
+        const PrimPack &pack = packs_[p];
+        float t[BVHWidth], u[BVHWidth], v[BVHWidth];
+        int hits = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, rest.tmax, t, u, v);
+        if (!hits) continue;
+        int best = __builtin_ctz(hits);
+        for (hits &= hits - 1; hits; hits &= hits - 1) {
+            const int i = __builtin_ctz(hits);
+            if (t[i] < t[best]) best = i;
+        }
+        found = true;
+        rest.tmax = t[best];
+        hit->t = t[best], hit->prim = pack.prim[best], hit->u = u[best], hit->v = v[best];
+    }
+    return traverse<false, true>(rest, hit) || found;
+}
+
+bool BVH::occluded_two_phase(const Ray &ray) const {
+    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    const RayPrecompPack pc(ray);
+    for (uint32_t p : root_packs_) {
+        const PrimPack &pack = packs_[p];
+        float t[BVHWidth], u[BVHWidth], v[BVHWidth];
+        if (intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, ray.tmax, t, u, v)) return true;
+    }
+    Hit unused;
+    return traverse<true, true>(ray, &unused);
+}
+
 bool BVH::intersect(const Ray &ray, Hit *hit) const {
+    if (two_phase_) return intersect_two_phase(ray, hit);
     if (nodes_.size() == 1) return intersect_one_node(ray, hit);
     return intersect_traversal(ray, hit);
 }
@@ -814,21 +929,14 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
     }
 }
 
-void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
-    auto trace = [&](int k) {
-        Hit hit;
-        intersect(r.ray(k), &hit);
-        hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
-    };
-    if (!flat()) {
-        for (int k = 0; k < n; ++k) trace(k);
-        return;
-    }
+/// The lanes' part of intersect_columns(): the nearest hits of rays[0, n) among the flat
+/// triangles and spheres into `hits`, and retrace[k] 1 where intersect() must decide.
+void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace) const {
     // Each ray's constants of the watertight test (RayPrecomp, RayPrecompPack), and whether
     // it must be traced by intersect() (`retrace`: 1 or 0).
     alignas(64) int kx[MaxColumns], ky[MaxColumns], kz[MaxColumns];
     alignas(64) float ox[MaxColumns], oy[MaxColumns], oz[MaxColumns], sx[MaxColumns], sy[MaxColumns],
-        sz[MaxColumns], retrace[MaxColumns], best_t[MaxColumns], best_u[MaxColumns], best_v[MaxColumns];
+        sz[MaxColumns], best_t[MaxColumns], best_u[MaxColumns], best_v[MaxColumns];
     alignas(64) uint32_t best_prim[MaxColumns];
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -895,17 +1003,62 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             if (t < best_t[k]) best_t[k] = t, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = prim;
         }
     }
-    // The hits; then the rays to retrace, traced.
+    // The hits.
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         hits.t[k] = best_t[k], hits.u[k] = best_u[k], hits.v[k] = best_v[k], hits.prim[k] = best_prim[k];
     }
+}
+
+void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
+    auto trace = [&](int k) {
+        Hit hit;
+        intersect(r.ray(k), &hit);
+        hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
+    };
+    if (!flat() && !two_phase_) {
+        for (int k = 0; k < n; ++k) trace(k);
+        return;
+    }
+    alignas(64) float retrace[MaxColumns];
+    flat_columns(r, n, hits, retrace);
+    if (two_phase_) {
+        // The rest of the tree, beyond the root's leaves, for the rays that enter one of its
+        // inner children's boxes before their nearest hit so far.
+        alignas(64) int enters[MaxColumns];
+        enters_inner(r, n, hits.t, enters);
+        for (int k = 0; k < n; ++k) {
+            if (retrace[k] != 0.f || !enters[k]) continue;
+            Ray ray = r.ray(k);
+            ray.tmax = std::min(ray.tmax, hits.t[k]);
+            Hit h;
+            if (traverse<false, true>(ray, &h)) hits.t[k] = h.t, hits.u[k] = h.u, hits.v[k] = h.v, hits.prim[k] = h.prim;
+        }
+    }
+    // The rays to retrace, traced.
     for (int k = 0; k < n; ++k) {
         if (retrace[k] != 0.f) trace(k);
     }
 }
 
 void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
+    if (two_phase_) {
+        // Blocked by the root's leaves (in lanes), else by the rest of the tree for the rays
+        // that enter one of its inner children's boxes.
+        alignas(64) float t[MaxColumns], u[MaxColumns], v[MaxColumns], retrace[MaxColumns];
+        alignas(64) uint32_t prim[MaxColumns];
+        alignas(64) int enters[MaxColumns];
+        flat_columns(r, n, {t, u, v, prim}, retrace);
+        enters_inner(r, n, r.tmax, enters);
+        for (int k = 0; k < n; ++k) {
+            Hit unused;
+            blocked[k] = retrace[k] != 0.f ? occluded(r.ray(k))
+                         : prim[k] != ~0u  ? 1
+                         : enters[k]       ? traverse<true, true>(r.ray(k), &unused)
+                                           : 0;
+        }
+        return;
+    }
     if (flat()) {
         alignas(64) float t[MaxColumns], u[MaxColumns], v[MaxColumns];
         alignas(64) uint32_t prim[MaxColumns];
@@ -950,6 +1103,7 @@ bool BVH::occluded_one_node(const Ray &ray) const {
 }
 
 bool BVH::occluded(const Ray &ray) const {
+    if (two_phase_) return occluded_two_phase(ray);
     if (nodes_.size() == 1) return occluded_one_node(ray);
     return occluded_traversal(ray);
 }

@@ -81,7 +81,9 @@ public:
     /// line passes near it; a ray whose hit that does not decide as intersect() would (two
     /// primitives at the same distance, whose order intersect() settles by its traversal; an
     /// edge function exactly zero, which it recomputes in double; a non-finite origin or
-    /// direction) is traced by intersect(). Otherwise intersect() for each ray.
+    /// direction) is traced by intersect(). In a two_phase() tree the same for the root's
+    /// leaves, then the rest of the tree for the rays that may find a nearer hit there.
+    /// Otherwise intersect() for each ray.
     /// One difference remains: the lanes test every triangle, the traversal only those of the
     /// leaves whose boxes the ray enters before its nearest hit so far, and where a hit lies
     /// within a rounding of its leaf's box the box's test can round it out. Then the lanes
@@ -95,13 +97,24 @@ public:
     /// Whether each of rays[0, n) (n <= MaxColumns) is blocked, as occluded() decides:
     /// blocked[k] 1 or 0. A flat BVH finds the nearest hits in lanes (intersect_columns;
     /// faster than occluded() where the rays pass near spheres, whose exact test is in
-    /// double, as a sphere light's shadow rays do); otherwise occluded() for each ray.
+    /// double, as a sphere light's shadow rays do); a two_phase() tree tests its root's leaves
+    /// so, then the rest of the tree for the rays not blocked that enter it; otherwise
+    /// occluded() for each ray.
     void occluded_columns(const RayColumns &rays, int n, int *blocked) const;
     /// Whether the tree is one node over at most FlatTriangles triangles and FlatSpheres
     /// spheres and nothing else (a small scene), whose rays intersect_columns() tests in
     /// SIMD lanes: most of a ray's traversal there is per-ray set-up and branches, for one
     /// node and a pack or two.
-    bool flat() const { return !flat_triangles_.empty(); }
+    bool flat() const { return !flat_triangles_.empty() && !two_phase_; }
+    /// Whether a larger tree is searched in two phases: its root's leaves (triangles only, at
+    /// most FlatTriangles: a room's walls and lights around a detailed mesh) against the rays
+    /// in SIMD lanes as a flat tree's triangles, then, for the rays that enter one of the
+    /// root's inner children's boxes (tested in lanes) before their nearest hit so far, the
+    /// rest of the tree one ray at a time (traverse() without the root's leaves). intersect()
+    /// and occluded() search in the same two phases (the root's leaves without their boxes'
+    /// tests), so that the lanes find what they find. In the bunny's box 61% of the closest-hit
+    /// rays and 53% of the shadow rays had visited the root node alone: their traversal is gone.
+    bool two_phase() const { return two_phase_; }
 
     /// intersect() and occluded() through the general traversal, whatever the tree (in a tree
     /// of one node those two take a shortcut with the same answers), for tests.
@@ -117,8 +130,24 @@ public:
     double sah_cost() const { return sah_cost_; }
 
 private:
-    template <bool AnyHit>
+    /// The traversal from the root; with InnerOnly, of the root's inner children only (the
+    /// second phase of a two_phase() tree).
+    template <bool AnyHit, bool InnerOnly = false>
     bool traverse(const Ray &ray, Hit *hit) const;
+    /// intersect() and occluded() of a two_phase() tree.
+    bool intersect_two_phase(const Ray &ray, Hit *hit) const;
+    bool occluded_two_phase(const Ray &ray) const;
+    /// The nearest hits of rays[0, n) among the flat triangles and spheres, in lanes, and
+    /// retrace[k] 1 where intersect() must decide (intersect_columns()'s first part).
+    void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace) const;
+    /// enters[k] 1 where ray k enters one of the root's inner children's boxes before
+    /// min(its tmax, limit[k]), else 0: NodeTest's operations in lanes, so the traversal's
+    /// decision.
+    void enters_inner(const RayColumns &r, int n, const float *limit, int *enters) const;
+    bool two_phase_ = false;
+    uint32_t root_inner_mask_ = 0;      ///< the root's inner children (two_phase())
+    std::vector<uint32_t> root_packs_;  ///< the packs of the root's leaves (two_phase())
+    std::vector<float> inner_box_;      ///< the root's inner children's boxes: lo x, y, z, hi x, y, z
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
     bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
     /// intersect() for a tree of one node.

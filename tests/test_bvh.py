@@ -229,10 +229,11 @@ def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
 @pytest.mark.parametrize("march", ["x86-64-v3", "native"])
 def test06_flat_intersection_vectorises(tmp_path, march):
     # intersect_columns' loops over the rays (their constants, each triangle, the nearest
-    # hits' rounding check, each sphere's near test, the hits' copy) vectorise for AVX2 and for this
-    # machine: an edit that stops GCC keeps the hits bitwise equal and only makes them
-    # slower, which no other test sees.
-    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 6
+    # hits' rounding check, each sphere's near test, the hits' copy, and a two-phase tree's
+    # tests of the root's inner boxes) vectorise for AVX2 and for this machine: an edit that
+    # stops GCC keeps the hits bitwise equal and only makes them slower, which no other test
+    # sees.
+    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 8
 
 
 def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside():
@@ -313,3 +314,62 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
             blocked = tr._C.occluded_rays(scene._native, *rays, False)
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, traversal=True))
             assert int(blocked.sum()) > (1000 if scale > 1 else -1)
+
+
+def test10_two_phase_tree_is_the_traversals(shared):
+    # A detailed mesh in a room: the root's leaves (the room's 12 triangles) are tested in
+    # lanes, then the rest of the tree for the rays that enter its inner boxes
+    # (BVH::two_phase). The lanes' hits and shadow rays must be intersect()'s and occluded()'s
+    # bit for bit, and those the general traversal's but where a hit lies within a rounding
+    # of a leaf's box (the root's leaves are tested without their boxes).
+    bunny = shared / "meshes" / "bunny.ply"
+    scene = tr.load_dict({
+        "type": "scene",
+        "room": {"type": "cube", "to_world": tr.Transform.scale(2), "flip_normals": True},
+        "bunny": {"type": "ply", "filename": str(bunny), "to_world": tr.Transform.translate([0, -1.5, 0]).scale(9)},
+    })
+    assert scene._native.bvh_two_phase and not scene._native.bvh_flat
+    rng = np.random.default_rng(10)
+    n = 20000
+    o = rng.uniform(-1.9, 1.9, size=(n, 3))
+    d = rng.normal(size=(n, 3))
+    # A third aimed at the bunny's vertices, some from the walls, some with bounded intervals,
+    # and degenerate rays.
+    mesh = meshes.load_ply(bunny).transformed(tr.Transform.translate([0, -1.5, 0]).scale(9).matrix)
+    m = n // 3
+    d[:m] = mesh.positions[rng.integers(0, len(mesh.positions), m)] - o[:m]
+    axis = rng.integers(0, 3, 2000)
+    o[m + np.arange(2000), axis] = 2.0 * rng.choice([-1, 1], 2000)
+    # And 3000 at the bunny's extreme vertices, on the boxes of the tree's top nodes (hits on
+    # box faces: the lanes' test of the root's inner boxes must let them through as the
+    # traversal's does).
+    p = mesh.positions.astype(np.float64)
+    extremes = p[np.concatenate([np.argmin(p, axis=0), np.argmax(p, axis=0)])]
+    d[m + 2000:m + 5000] = extremes[rng.integers(0, 6, 3000)] - o[m + 2000:m + 5000]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o[-3] = [np.inf, 0, 0]
+    d[-2] = [0, 0, 0]
+    o[-1] = [np.nan, 0, 0]
+    tmin = np.where(rng.random(n) < 0.1, rng.random(n) * 0.5, 0.0)
+    tmax = np.where(rng.random(n) < 0.2, rng.random(n) * 3, np.inf)
+    args = [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
+    lanes = tr._C.closest_hits(scene._native, *args, True)
+    per_ray = tr._C.closest_hits(scene._native, *args, False)
+    traversal = tr._C.closest_hits(scene._native, *args, False, traversal=True)
+    for a, b in zip(lanes, per_ray):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    on_room = (per_ray[1] >= 0) & (per_ray[1] < 12)
+    assert int(on_room.sum()) > 5000 and int((per_ray[1] >= 12).sum()) > 5000
+    same = (per_ray[0].nan_to_num() == traversal[0].nan_to_num()) & (per_ray[1] == traversal[1])
+    same &= (per_ray[2] == traversal[2]) & (per_ray[3] == traversal[3])
+    assert int((~same).sum()) <= n // 1000
+    near = (per_ray[0].double() - traversal[0].double()).abs() <= 1e-5 * traversal[0].double().abs() + 1e-6
+    assert bool((same | near).all())
+    # Shadow rays: the same rays, and each ending a rounding before its nearest hit.
+    for ends in (args[3], torch.where(torch.isfinite(per_ray[0]), per_ray[0].double() * (1 - 1e-6), args[3].double()).float()):
+        rays = [args[0], args[1], args[2], ends]
+        blocked = tr._C.occluded_rays(scene._native, *rays, True)
+        assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False))
+        hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
+        assert int((blocked != hit).sum()) == 0
+        assert int((blocked != tr._C.occluded_rays(scene._native, *rays, False, traversal=True)).sum()) <= n // 1000
