@@ -689,6 +689,11 @@ bool BVH::intersect(const Ray &ray, Hit *hit) const {
     return intersect_traversal(ray, hit);
 }
 
+int BVH::root_children(const Ray &ray, float t_entry[BVHWidth]) const {
+    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return 0;
+    return NodeTest(ray)(nodes_[0], ray.tmax, t_entry);
+}
+
 /// intersect() in a tree of one node (a small scene): the children whose boxes the ray enters,
 /// nearest entry first (of equal entries the later slot first), each while it may still hold
 /// a nearer hit: the children traverse<false> visits, in its order, so the same hit (ties
@@ -698,11 +703,9 @@ bool BVH::intersect(const Ray &ray, Hit *hit) const {
 /// lanes leave to intersect(), and for scenes of one node that are not flat: with AVX2's
 /// 8 lanes cornell-box's 36 triangles, 3% faster than traverse<false>.)
 bool BVH::intersect_one_node(const Ray &ray, Hit *hit) const {
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
-    const NodeTest node_test(ray);
     const BVHNode &node = nodes_[0];
     alignas(32) float t_entry[BVHWidth];
-    int mask = node_test(node, ray.tmax, t_entry);
+    int mask = root_children(ray, t_entry);
     if (!mask) return false;
     // The children entered, sorted by (entry, slot descending): slots inserted in increasing
     // order, each before those of entries no nearer.
@@ -1075,11 +1078,9 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
 /// from its stack: any hit ends either), without its stack and prefetches, which cost more
 /// than the tests in a room of a few dozen triangles (cornell-box 5% faster).
 bool BVH::occluded_one_node(const Ray &ray) const {
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
-    const NodeTest node_test(ray);
     const BVHNode &node = nodes_[0];
     alignas(32) float t_entry[BVHWidth];
-    int mask = node_test(node, ray.tmax, t_entry);
+    int mask = root_children(ray, t_entry);
     if (!mask) return false;
     const RayPrecompPack pc(ray);
     for (; mask; mask &= mask - 1) {

@@ -150,6 +150,9 @@ private:
     std::vector<float> inner_box_;      ///< the root's inner children's boxes: lo x, y, z, hi x, y, z
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
     bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
+    /// The mask of the root's children whose boxes `ray` enters, with their entry distances
+    /// (none for a non-finite origin, as in traverse()).
+    int root_children(const Ray &ray, float t_entry[BVHWidth]) const;
     /// intersect() for a tree of one node.
     bool intersect_one_node(const Ray &ray, Hit *hit) const;
     /// occluded() for a tree of one node.
