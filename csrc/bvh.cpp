@@ -432,6 +432,7 @@ void BVH::build(const Geometry &geometry) {
             flat_spheres_.clear();
         } else {
             root_packs_.clear();
+            inner_box_.clear();
             root_inner_mask_ = 0;
         }
     }
