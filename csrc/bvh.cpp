@@ -476,6 +476,48 @@ struct NodeTest {
     }
 };
 
+template <bool AnyHit>
+RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc,
+                                     float &tmax, Hit *hit) const {
+    bool found = false;
+    if (pack.triangles) {
+        float t[BVHWidth], u[BVHWidth], v[BVHWidth];
+        int mask = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, tmax, t, u, v);
+        if (mask) {
+            if (AnyHit) return true;
+            int best = __builtin_ctz(mask);
+            for (mask &= mask - 1; mask; mask &= mask - 1) {
+                int i = __builtin_ctz(mask);
+                if (t[i] < t[best]) best = i;
+            }
+            found = true;
+            tmax = t[best];
+            hit->t = t[best];
+            hit->prim = pack.prim[best];
+            hit->u = u[best];
+            hit->v = v[best];
+        }
+    }
+    for (int mask = pack.spheres; mask; mask &= mask - 1) {
+        uint32_t prim = pack.prim[__builtin_ctz(mask)];
+        const Shape &s = geometry_->analytic_shape(prim);
+        float t;
+        if (!intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t)) continue;
+        if (AnyHit) return true;
+        found = true;
+        tmax = t;
+        hit->t = t;
+        hit->prim = prim;
+        hit->u = hit->v = 0.f;
+    }
+    if (__builtin_expect(pack.others != 0, 0) && intersect_others(ray, pack, tmax, hit)) {
+        if (AnyHit) return true;
+        found = true;
+        tmax = hit->t;
+    }
+    return found;
+}
+
 template <bool AnyHit, bool InnerOnly>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
     if (nodes_.empty()) return false;
@@ -546,48 +588,15 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
             }
         } else {
             // Intersect the packs of a leaf.
+            if (!pc_ready) {
+                pc = RayPrecompPack(ray);
+                pc_ready = true;
+            }
             uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
             for (uint32_t p = first; p < last; ++p) {
-                const PrimPack &pack = packs_[p];
-                if (pack.triangles) {
-                    float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-                    if (!pc_ready) {
-                        pc = RayPrecompPack(ray);
-                        pc_ready = true;
-                    }
-                    int mask = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, tmax,
-                                                   t, u, v);
-                    if (mask) {
-                        if (AnyHit) return true;
-                        int best = __builtin_ctz(mask);
-                        for (mask &= mask - 1; mask; mask &= mask - 1) {
-                            int i = __builtin_ctz(mask);
-                            if (t[i] < t[best]) best = i;
-                        }
-                        found = true;
-                        tmax = t[best];
-                        hit->t = t[best];
-                        hit->prim = pack.prim[best];
-                        hit->u = u[best];
-                        hit->v = v[best];
-                    }
-                }
-                for (int mask = pack.spheres; mask; mask &= mask - 1) {
-                    uint32_t prim = pack.prim[__builtin_ctz(mask)];
-                    const Shape &s = geometry_->analytic_shape(prim);
-                    float t;
-                    if (!intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t)) continue;
+                if (intersect_pack<AnyHit>(packs_[p], ray, pc, tmax, hit)) {
                     if (AnyHit) return true;
                     found = true;
-                    tmax = t;
-                    hit->t = t;
-                    hit->prim = prim;
-                    hit->u = hit->v = 0.f;
-                }
-                if (__builtin_expect(pack.others != 0, 0) && intersect_others(ray, pack, tmax, hit)) {
-                    if (AnyHit) return true;
-                    found = true;
-                    tmax = hit->t;
                 }
             }
         }
@@ -655,32 +664,18 @@ bool BVH::intersect_two_phase(const Ray &ray, Hit *hit) const {
     const RayPrecompPack pc(ray);
     Ray rest = ray;
     bool found = false;
-    for (uint32_t p : root_packs_) {
-        const PrimPack &pack = packs_[p];
-        float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-        int hits = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, rest.tmax, t, u, v);
-        if (!hits) continue;
-        int best = __builtin_ctz(hits);
-        for (hits &= hits - 1; hits; hits &= hits - 1) {
-            const int i = __builtin_ctz(hits);
-            if (t[i] < t[best]) best = i;
-        }
-        found = true;
-        rest.tmax = t[best];
-        hit->t = t[best], hit->prim = pack.prim[best], hit->u = u[best], hit->v = v[best];
-    }
+    for (uint32_t p : root_packs_) found |= intersect_pack<false>(packs_[p], ray, pc, rest.tmax, hit);
     return traverse<false, true>(rest, hit) || found;
 }
 
 bool BVH::occluded_two_phase(const Ray &ray) const {
     if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
     const RayPrecompPack pc(ray);
-    for (uint32_t p : root_packs_) {
-        const PrimPack &pack = packs_[p];
-        float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-        if (intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, ray.tmax, t, u, v)) return true;
-    }
     Hit unused;
+    float tmax = ray.tmax;
+    for (uint32_t p : root_packs_) {
+        if (intersect_pack<true>(packs_[p], ray, pc, tmax, &unused)) return true;
+    }
     return traverse<true, true>(ray, &unused);
 }
 
@@ -725,36 +720,7 @@ bool BVH::intersect_one_node(const Ray &ray, Hit *hit) const {
         if (j > 0 && t_entry[c] > tmax * BoxWiden) continue;
         const uint32_t ref = node.child[c];
         const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
-        for (uint32_t p = first; p < last; ++p) {
-            const PrimPack &pack = packs_[p];
-            if (pack.triangles) {
-                float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-                int hits = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, tmax, t, u, v);
-                if (hits) {
-                    int best = __builtin_ctz(hits);
-                    for (hits &= hits - 1; hits; hits &= hits - 1) {
-                        const int i = __builtin_ctz(hits);
-                        if (t[i] < t[best]) best = i;
-                    }
-                    found = true;
-                    tmax = t[best];
-                    hit->t = t[best], hit->prim = pack.prim[best], hit->u = u[best], hit->v = v[best];
-                }
-            }
-            for (int m = pack.spheres; m; m &= m - 1) {
-                const uint32_t prim = pack.prim[__builtin_ctz(m)];
-                const Shape &s = geometry_->analytic_shape(prim);
-                float t;
-                if (!intersect_sphere(ray, s.center, s.radius, ray.tmin, tmax, &t)) continue;
-                found = true;
-                tmax = t;
-                hit->t = t, hit->prim = prim, hit->u = hit->v = 0.f;
-            }
-            if (__builtin_expect(pack.others != 0, 0) && intersect_others(ray, pack, tmax, hit)) {
-                found = true;
-                tmax = hit->t;
-            }
-        }
+        for (uint32_t p = first; p < last; ++p) found |= intersect_pack<false>(packs_[p], ray, pc, tmax, hit);
     }
     return found;
 }
@@ -1084,21 +1050,13 @@ bool BVH::occluded_one_node(const Ray &ray) const {
     int mask = root_children(ray, t_entry);
     if (!mask) return false;
     const RayPrecompPack pc(ray);
+    float tmax = ray.tmax;
+    Hit unused;
     for (; mask; mask &= mask - 1) {
         const uint32_t ref = node.child[__builtin_ctz(mask)];
         const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
         for (uint32_t p = first; p < last; ++p) {
-            const PrimPack &pack = packs_[p];
-            float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-            if (pack.triangles && intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, ray.tmax, t, u, v))
-                return true;
-            for (int m = pack.spheres; m; m &= m - 1) {
-                const Shape &s = geometry_->analytic_shape(pack.prim[__builtin_ctz(m)]);
-                float ts;
-                if (intersect_sphere(ray, s.center, s.radius, ray.tmin, ray.tmax, &ts)) return true;
-            }
-            Hit unused;
-            if (__builtin_expect(pack.others != 0, 0) && intersect_others(ray, pack, ray.tmax, &unused)) return true;
+            if (intersect_pack<true>(packs_[p], ray, pc, tmax, &unused)) return true;
         }
     }
     return false;

@@ -148,6 +148,12 @@ private:
     uint32_t root_inner_mask_ = 0;      ///< the root's inner children (two_phase())
     std::vector<uint32_t> root_packs_;  ///< the packs of the root's leaves (two_phase())
     std::vector<float> inner_box_;      ///< the root's inner children's boxes: lo x, y, z, hi x, y, z
+    /// Test a leaf's pack: its triangles, spheres and other shapes in (ray.tmin, tmax). With
+    /// AnyHit, whether one is hit; otherwise whether one is hit nearer than tmax, which then
+    /// becomes its distance, with `hit` its hit.
+    template <bool AnyHit>
+    bool intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc, float &tmax,
+                        Hit *hit) const;
     /// Test the disk and cylinder lanes of a pack (out of the traversal loop's hot path).
     bool intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit *hit) const;
     /// The mask of the root's children whose boxes `ray` enters, with their entry distances
