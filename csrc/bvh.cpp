@@ -446,6 +446,12 @@ void BVH::build(const Geometry &geometry) {
     }
 }
 
+/// Whether a ray's origin is finite: one that is not hits nothing (and must not enter empty
+/// boxes), in every query.
+RBPT_INLINE bool finite_origin(const Ray &ray) {
+    return std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z);
+}
+
 /// The slab test of a ray against all child boxes of a node at once (Williams et al. 2005):
 /// the per-ray constants splatted over the lanes, and the test returning the mask of children
 /// entered before `tmax` with their entry distances. A NaN (0 * inf, the origin on a slab plane
@@ -520,9 +526,7 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
 
 template <bool AnyHit, bool InnerOnly>
 bool BVH::traverse(const Ray &ray, Hit *hit) const {
-    if (nodes_.empty()) return false;
-    // A ray with a non-finite origin hits nothing (and must not enter empty boxes).
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    if (nodes_.empty() || !finite_origin(ray)) return false;
     // The triangle test's per-ray constants, set up at the first leaf: most rays of a large
     // scene leave it after a few boxes, without reaching one.
     RayPrecompPack pc;
@@ -660,7 +664,7 @@ void BVH::enters_inner(const RayColumns &r, int n, const float *limit, int *ente
 }
 
 bool BVH::intersect_two_phase(const Ray &ray, Hit *hit) const {
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    if (!finite_origin(ray)) return false;
     const RayPrecompPack pc(ray);
     Ray rest = ray;
     bool found = false;
@@ -669,7 +673,7 @@ bool BVH::intersect_two_phase(const Ray &ray, Hit *hit) const {
 }
 
 bool BVH::occluded_two_phase(const Ray &ray) const {
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return false;
+    if (!finite_origin(ray)) return false;
     const RayPrecompPack pc(ray);
     Hit unused;
     float tmax = ray.tmax;
@@ -686,7 +690,7 @@ bool BVH::intersect(const Ray &ray, Hit *hit) const {
 }
 
 int BVH::root_children(const Ray &ray, float t_entry[BVHWidth]) const {
-    if (!(std::isfinite(ray.o.x) && std::isfinite(ray.o.y) && std::isfinite(ray.o.z))) return 0;
+    if (!finite_origin(ray)) return 0;
     return NodeTest(ray)(nodes_[0], ray.tmax, t_entry);
 }
 
