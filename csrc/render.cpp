@@ -118,6 +118,8 @@ struct alignas(32) PixelSum {
 /// A PixelSum as one 4-wide vector (GCC's vector type), so that adding w (r, g, b, 1) is a
 /// broadcast, a product and a sum (the vectoriser built the broadcast from shuffles).
 typedef double Sum4 __attribute__((vector_size(32)));
+/// Eight doubles: a channel of a row of up to eight pixels (Film::splat_run).
+typedef double Row8 __attribute__((vector_size(64)));
 static_assert(sizeof(PixelSum) == sizeof(Sum4));
 inline Sum4 load_sum(const PixelSum &s) { return Sum4{s.value[0], s.value[1], s.value[2], s.weight}; }
 inline void store_sum(PixelSum &s, const Sum4 &v) {
@@ -436,23 +438,37 @@ private:
         }
     }
 
-    /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7).
+    /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7): a row
+    /// of the window's sums at a time, held in registers as one vector per channel (and one
+    /// for the weights) with the row's pixels in its lanes, so that a sample adds its
+    /// weights times its value to the whole row at once: the products and sums splat()
+    /// makes, in its order (veach-mis 84 -> 81-82 ms, against a 4-wide vector per pixel).
     template <int Border>
     void splat_run(Block &block, const Window &win, const SplatWeights &w, const int *ks, int r,
                    const RGB<float> *L) const {
         constexpr int N = 2 * Border + 1;
+        static_assert(N <= 8, "a row of the window in one vector");
         constexpr size_t Batch = SplatWeights::Batch;
+        // Each sample's weights along x (zero beyond N) and value, in double.
+        Row8 wx[Batch];
+        double lr[Batch], lg[Batch], lb[Batch];
+        for (int s = 0; s < r; ++s) {
+            const size_t k = size_t(ks[s]);
+            Row8 v = {};
+            for (int i = 0; i < N; ++i) v[i] = double(w.wx[size_t(i) * Batch + k]);
+            wx[s] = v;
+            lr[s] = double(L[k][0]), lg[s] = double(L[k][1]), lb[s] = double(L[k][2]);
+        }
         for (int j = 0; j < N; ++j) {
             PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
-            Sum4 acc[N];
-            for (int i = 0; i < N; ++i) acc[i] = load_sum(sum[i]);
+            Row8 ar = {}, ag = {}, ab = {}, aw = {};
+            for (int i = 0; i < N; ++i) ar[i] = sum[i].value[0], ag[i] = sum[i].value[1], ab[i] = sum[i].value[2], aw[i] = sum[i].weight;
+            const float *wy = &w.wy[size_t(j) * Batch];
             for (int s = 0; s < r; ++s) {
-                const size_t k = size_t(ks[s]);
-                const double wy = w.wy[size_t(j) * Batch + k];
-                const Sum4 l = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
-                for (int i = 0; i < N; ++i) acc[i] += (double(w.wx[size_t(i) * Batch + k]) * wy) * l;
+                const Row8 p = wx[s] * double(wy[ks[s]]);
+                ar += p * lr[s], ag += p * lg[s], ab += p * lb[s], aw += p;  // (p's own: p * 1)
             }
-            for (int i = 0; i < N; ++i) store_sum(sum[i], acc[i]);
+            for (int i = 0; i < N; ++i) sum[i].value[0] = ar[i], sum[i].value[1] = ag[i], sum[i].value[2] = ab[i], sum[i].weight = aw[i];
         }
     }
 

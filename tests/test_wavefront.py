@@ -515,12 +515,14 @@ def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monke
 
 
 @pytest.mark.parametrize("rfilter", [
-    {"type": "box"}, {"type": "tent", "radius": 1.7}, {"type": "gaussian"}, {"type": "gaussian", "stddev": 1.2},
-    {"type": "mitchell"}, {"type": "lanczos", "lobes": 2}])
+    {"type": "box"}, {"type": "tent", "radius": 1.7}, {"type": "gaussian"}, {"type": "gaussian", "stddev": 0.75},
+    {"type": "gaussian", "stddev": 1.2}, {"type": "mitchell"}, {"type": "lanczos", "lobes": 2}])
 def test16_filter_weights_of_a_batch_are_the_scalar_splats(tmp_path, monkeypatch, rfilter):
     # The wavefront computes its batch's filter weights at once (Filter::eval_rows, the tent's
-    # and the gaussian's in SIMD lanes); the pixels must be those the scalar integrator
-    # splats sample by sample, with every filter, also where a crop window cuts the splats.
+    # and the gaussian's in SIMD lanes) and splats a pixel's samples by runs over windows of
+    # 5 x 5 and 7 x 7 (the gaussian's stddev 0.5 and 0.75); the pixels must be those the
+    # scalar integrator splats sample by sample, with every filter, also where a crop window
+    # cuts the splats.
     d = room_dict(tmp_path)
     d["sensor"]["film"]["rfilter"] = rfilter
     scene = tr.load_dict(d)
