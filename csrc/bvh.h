@@ -59,6 +59,9 @@ class BVH {
 public:
     /// Most rays intersect_columns() takes at once.
     static constexpr int MaxColumns = 256;
+    /// flat_columns() skips a pass's triangles for chunks of this many rays that all miss
+    /// their box (AVX-512's 16 lanes, or two or four of narrower vectors).
+    static constexpr int FlatChunk = 16;
     /// Most triangles, and spheres, of a flat BVH (see flat()): more where the build's
     /// vectors hold 16 floats. (Renders against the traversal's on the AMD Zen 5 machine,
     /// session 24: the cbox, 12 triangles, 0.87x the time with 16 lanes and with 8 (an
@@ -172,6 +175,7 @@ private:
     };
     std::vector<FlatTriangle> flat_triangles_;
     std::vector<float> flat_coords_;  ///< their vertices, [vertex][axis][triangle]
+    float flat_area_ = 0.f;  ///< the surface area of their bounding box
     struct FlatRays;
     template <int G, bool Deferred>
     static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);

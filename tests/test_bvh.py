@@ -228,12 +228,12 @@ def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
 @pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
 @pytest.mark.parametrize("march", ["x86-64-v3", "native"])
 def test06_flat_intersection_vectorises(tmp_path, march):
-    # intersect_columns' loops over the rays (their constants, each triangle, the nearest
-    # hits' rounding check, each sphere's near test, the hits' copy, and a two-phase tree's
-    # tests of the root's inner boxes) vectorise for AVX2 and for this machine: an edit that
-    # stops GCC keeps the hits bitwise equal and only makes them slower, which no other test
-    # sees.
-    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 8
+    # intersect_columns' loops over the rays (their constants and reciprocal directions, each
+    # triangle's chunks (their box test, their triangle test) and the rest, the nearest hits'
+    # rounding check, each sphere's near test, the hits' copy, and a two-phase tree's tests
+    # of the root's inner boxes) vectorise for AVX2 and for this machine: an edit that stops
+    # GCC keeps the hits bitwise equal and only makes them slower, which no other test sees.
+    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 11
 
 
 def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside():
@@ -373,3 +373,50 @@ def test10_two_phase_tree_is_the_traversals(shared):
         hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
         assert int((blocked != hit).sum()) == 0
         assert int((blocked != tr._C.occluded_rays(scene._native, *rays, False, traversal=True)).sum()) <= n // 1000
+
+
+@pytest.mark.parametrize("far_cube", [False, True])
+def test11_flat_chunks_skip_only_boxes_their_rays_miss(far_cube):
+    # The lanes skip a pass of triangles for a chunk of 16 rays none of which enters the
+    # triangles' box (widened) before its nearest hit so far (BVH::flat_triangles, for
+    # triangles whose box is small beside the scene's). Bundles of 16 rays from one origin,
+    # as a pixel's samples are, aimed at the cubes' vertices, edges and faces (hits on the
+    # boxes' boundaries), at the decal, past the scene, and with intervals ending at or
+    # near the hits: each hit must be the traversal's, bit for bit.
+    scene = _small_scene(far_cube)
+    if far_cube and not scene._native.bvh_flat:
+        pytest.skip("this build keeps at most 16 triangles flat (8-float vectors)")
+    rng = np.random.default_rng(11)
+    bundles = 600
+    corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    if far_cube:
+        corners = np.concatenate([corners, (corners - [0.5, 0, 0]) * 1.8 + [2, 0.3, 0]])
+    a, b = corners[rng.integers(0, len(corners), bundles)], corners[rng.integers(0, len(corners), bundles)]
+    along = np.where(rng.random((bundles, 1)) < 0.3, rng.integers(0, 3, (bundles, 1)) / 2, rng.random((bundles, 1)))
+    target = a + (b - a) * along  # vertices, edge midpoints, edges, face diagonals
+    kind = rng.integers(0, 4, bundles)
+    target[kind == 1] = rng.uniform(-1.7, 1.7, (int((kind == 1).sum()), 3))  # anywhere
+    target[kind == 2] = np.stack([rng.uniform(-1.7, -0.3, int((kind == 2).sum())), np.full(int((kind == 2).sum()), -1.0),
+                                  rng.uniform(0.3, 1.7, int((kind == 2).sum()))], 1)  # the decal
+    target[kind == 3] *= 4.0  # past the scene
+    origin = rng.normal(size=(bundles, 3)) * 3 + np.where(rng.random((bundles, 1)) < 0.2, 40.0, 0.0) * rng.normal(size=(bundles, 3))
+    spread = 10.0 ** rng.uniform(-6, -1, (bundles, 1, 1))
+    d = (target - origin)[:, None] + rng.normal(size=(bundles, 16, 3)) * spread * np.linalg.norm(target - origin, axis=1)[:, None, None]
+    d[:, 0] = target - origin  # one ray of each bundle exactly at its target
+    o = np.repeat(origin[:, None], 16, axis=1).reshape(-1, 3)
+    d = (d / np.linalg.norm(d, axis=2, keepdims=True)).reshape(-1, 3)
+    n = len(o)
+    args = [torch.from_numpy(x).float() for x in (o, d, np.zeros(n), np.full(n, np.inf))]
+    traversal = tr._C.closest_hits(scene._native, *args, False)
+    assert 0.2 * n < int((traversal[1] >= 0).sum()) < 0.9 * n
+    flat = tr._C.closest_hits(scene._native, *args, True)
+    for x, y in zip(flat, traversal):
+        assert torch.equal(x.nan_to_num(), y.nan_to_num())
+    # Intervals ending just past each bundle's first hit: the rest of the bundle must find
+    # the same hits as the traversal with that end.
+    t_end = np.repeat(traversal[0].numpy().reshape(bundles, 16)[:, :1] * (1 + 1e-3), 16, axis=1).reshape(-1)
+    args[3] = torch.from_numpy(np.where(np.isfinite(t_end), t_end, np.inf)).float()
+    traversal = tr._C.closest_hits(scene._native, *args, False)
+    flat = tr._C.closest_hits(scene._native, *args, True)
+    for x, y in zip(flat, traversal):
+        assert torch.equal(x.nan_to_num(), y.nan_to_num())
