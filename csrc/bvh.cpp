@@ -58,12 +58,6 @@ constexpr int StackSize = (BVHWidth - 1) * MaxDepth + 1;
 /// Box exits are widened by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
 constexpr float BoxWiden = 1.0000004f;
 
-/// The surface area of the box [lo, hi].
-RBPT_INLINE float box_area(const float lo[3], const float hi[3]) {
-    const float x = hi[0] - lo[0], y = hi[1] - lo[1], z = hi[2] - lo[2];
-    return 2.f * ((x * y + y * z) + z * x);
-}
-
 struct Bounds {
     Vec3 lo{Infinity, Infinity, Infinity}, hi{-Infinity, -Infinity, -Infinity};
     void extend(const Vec3 &p) { lo = vmin(lo, p); hi = vmax(hi, p); }
@@ -445,12 +439,10 @@ void BVH::build(const Geometry &geometry) {
     if (!flat_triangles_.empty()) {
         // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
         const size_t n = flat_triangles_.size();
-        float lo[3], hi[3];
-        for (int a = 0; a < 3; ++a) lo[a] = hi[a] = flat_triangles_[0].v[0][a];
+        Bounds box;
         for (const FlatTriangle &t : flat_triangles_)
-            for (int j = 0; j < 3; ++j)
-                for (int a = 0; a < 3; ++a) lo[a] = std::min(lo[a], t.v[j][a]), hi[a] = std::max(hi[a], t.v[j][a]);
-        flat_area_ = box_area(lo, hi);
+            for (int j = 0; j < 3; ++j) box.extend(Vec3{t.v[j][0], t.v[j][1], t.v[j][2]});
+        flat_area_ = box.area();
         flat_coords_.resize(9 * n);
         for (size_t i = 0; i < n; ++i)
             for (int j = 0; j < 3; ++j)
@@ -814,7 +806,8 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         const float margin = 1e-4f * ((hi[a] - lo[a]) + std::max(std::abs(lo[a]), std::abs(hi[a]))) + 1e-6f;
         lo[a] -= margin, hi[a] += margin;
     }
-    const bool cull = box_area(lo, hi) < q.cull_area;
+    const Bounds box{{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
+    const bool cull = box.area() < q.cull_area;
     const float *q_rox = q.rox, *q_roy = q.roy, *q_roz = q.roz, *q_ix = q.inv_x, *q_iy = q.inv_y, *q_iz = q.inv_z;
     // Whether ray k enters the box before its nearest hit so far (NodeTest's operations).
     auto enters = [&](int k) __attribute__((always_inline)) {
