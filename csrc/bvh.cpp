@@ -580,16 +580,20 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
                     ref = node.child[c];
                     continue;
                 }
-                // Several children: order them by entry distance, farthest first.
-                Entry hits[BVHWidth] = {{node.child[c], t_entry[c]}};
-                int n = 1;
-                for (; mask; mask &= mask - 1, ++n) {
-                    c = __builtin_ctz(mask);
-                    Entry e{node.child[c], t_entry[c]};
-                    int i = n;
-                    for (; i > 0 && hits[i - 1].t < e.t; --i) hits[i] = hits[i - 1];
-                    hits[i] = e;
+                // Several children: each placed by its rank, farthest entry first and of
+                // equal entries the lower slot first (so the nearest is visited next, the
+                // others popped nearest first), counted in lanes rather than sorted.
+                const int all = mask | 1 << c;
+                const simd::V t_all = simd::load(t_entry);
+                Entry hits[BVHWidth];
+                for (int m = all; m; m &= m - 1) {
+                    c = __builtin_ctz(m);
+                    const simd::V t_c = simd::set1(t_entry[c]);
+                    const int farther = simd::mask(simd::gt(t_all, t_c)) & all;
+                    const int tied_before = simd::mask(simd::eq(t_all, t_c)) & all & ((1 << c) - 1);
+                    hits[__builtin_popcount(farther) + __builtin_popcount(tied_before)] = {node.child[c], t_entry[c]};
                 }
+                const int n = __builtin_popcount(all);
                 for (int i = 0; i < n - 1; ++i) stack[sp++] = hits[i];
                 ref = hits[n - 1].ref;
                 continue;
