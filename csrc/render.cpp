@@ -438,17 +438,20 @@ private:
         }
     }
 
-    /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7): a row
-    /// of the window's sums at a time, held in registers as one vector per channel (and one
-    /// for the weights) with the row's pixels in its lanes, so that a sample adds its
-    /// weights times its value to the whole row at once: the products and sums splat()
-    /// makes, in its order (veach-mis 84 -> 81-82 ms, against a 4-wide vector per pixel).
+    /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7), a row
+    /// of the window's sums at a time held in registers over the run: the products and sums
+    /// splat() makes, in its order. With AVX-512, one 8-wide vector per channel (and one
+    /// for the weights) holds the row's pixels in its lanes, so that a sample adds its
+    /// weights times its value to the whole row at once (veach-mis 84 -> 81-82 ms against a
+    /// 4-wide vector per pixel); narrower builds keep a 4-wide vector per pixel (GCC splits
+    /// the 8-wide vectors through memory there: veach-mis 127 -> 158 ms with AVX2).
     template <int Border>
     void splat_run(Block &block, const Window &win, const SplatWeights &w, const int *ks, int r,
                    const RGB<float> *L) const {
         constexpr int N = 2 * Border + 1;
         static_assert(N <= 8, "a row of the window in one vector");
         constexpr size_t Batch = SplatWeights::Batch;
+#if defined(__AVX512F__)
         // Each sample's weights along x (zero beyond N) and value, in double.
         Row8 wx[Batch];
         double lr[Batch], lg[Batch], lb[Batch];
@@ -470,6 +473,20 @@ private:
             }
             for (int i = 0; i < N; ++i) sum[i].value[0] = ar[i], sum[i].value[1] = ag[i], sum[i].value[2] = ab[i], sum[i].weight = aw[i];
         }
+#else
+        for (int j = 0; j < N; ++j) {
+            PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
+            Sum4 acc[N];
+            for (int i = 0; i < N; ++i) acc[i] = load_sum(sum[i]);
+            for (int s = 0; s < r; ++s) {
+                const size_t k = size_t(ks[s]);
+                const double wy = w.wy[size_t(j) * Batch + k];
+                const Sum4 l = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
+                for (int i = 0; i < N; ++i) acc[i] += (double(w.wx[size_t(i) * Batch + k]) * wy) * l;
+            }
+            for (int i = 0; i < N; ++i) store_sum(sum[i], acc[i]);
+        }
+#endif
     }
 
     template <typename T>
