@@ -58,6 +58,19 @@ constexpr int StackSize = (BVHWidth - 1) * MaxDepth + 1;
 /// Box exits are widened by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
 constexpr float BoxWiden = 1.0000004f;
 
+/// NodeTest's operations for one ray, in a lane: whether it enters the box [lo, hi] within
+/// [t0, t1], t1 widened by `widen` (the near and far planes chosen by the sign of 1 / d).
+RBPT_INLINE int enters_box(const float lo[3], const float hi[3], const Vec3 &o, const Vec3 &inv_d, float t0, float t1,
+                           float widen) {
+#pragma GCC unroll 3
+    for (int a = 0; a < 3; ++a) {
+        const float near = std::signbit(inv_d[a]) ? hi[a] : lo[a], far = std::signbit(inv_d[a]) ? lo[a] : hi[a];
+        const float tn = (near - o[a]) * inv_d[a], tf = (far - o[a]) * inv_d[a];
+        t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
+    }
+    return t0 <= t1 * widen ? 1 : 0;
+}
+
 struct Bounds {
     Vec3 lo{Infinity, Infinity, Infinity}, hi{-Infinity, -Infinity, -Infinity};
     void extend(const Vec3 &p) { lo = vmin(lo, p); hi = vmax(hi, p); }
@@ -650,23 +663,12 @@ void BVH::enters_inner(const RayColumns &r, int n, const float *limit, int *ente
     }
     const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_tmin = r.tmin;
     for (size_t c = 0; c + 6 <= inner_box_.size(); c += 6) {
-        const float lx = inner_box_[c], ly = inner_box_[c + 1], lz = inner_box_[c + 2];
-        const float hx = inner_box_[c + 3], hy = inner_box_[c + 4], hz = inner_box_[c + 5];
+        const float lo[3] = {inner_box_[c], inner_box_[c + 1], inner_box_[c + 2]};
+        const float hi[3] = {inner_box_[c + 3], inner_box_[c + 4], inner_box_[c + 5]};
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
-            // (NodeTest's operations: the near and far planes by the sign of 1 / d.)
-            const float ix = inv_x[k], iy = inv_y[k], iz = inv_z[k];
-            const float nx = std::signbit(ix) ? hx : lx, fx = std::signbit(ix) ? lx : hx;
-            const float ny = std::signbit(iy) ? hy : ly, fy = std::signbit(iy) ? ly : hy;
-            const float nz = std::signbit(iz) ? hz : lz, fz = std::signbit(iz) ? lz : hz;
-            float t0 = q_tmin[k], t1 = tmax[k];
-            float tn = (nx - q_ox[k]) * ix, tf = (fx - q_ox[k]) * ix;
-            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-            tn = (ny - q_oy[k]) * iy, tf = (fy - q_oy[k]) * iy;
-            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-            tn = (nz - q_oz[k]) * iz, tf = (fz - q_oz[k]) * iz;
-            t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-            enters[k] |= t0 <= t1 * BoxWiden ? 1 : 0;
+            const Vec3 o{q_ox[k], q_oy[k], q_oz[k]}, inv_d{inv_x[k], inv_y[k], inv_z[k]};
+            enters[k] |= enters_box(lo, hi, o, inv_d, q_tmin[k], tmax[k], BoxWiden);
         }
     }
 }
@@ -815,18 +817,8 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
     const float *q_rox = q.rox, *q_roy = q.roy, *q_roz = q.roz, *q_ix = q.inv_x, *q_iy = q.inv_y, *q_iz = q.inv_z;
     // Whether ray k enters the box before its nearest hit so far (NodeTest's operations).
     auto enters = [&](int k) __attribute__((always_inline)) {
-        const float ix = q_ix[k], iy = q_iy[k], iz = q_iz[k];
-        const float nx = std::signbit(ix) ? hi[0] : lo[0], fx = std::signbit(ix) ? lo[0] : hi[0];
-        const float ny = std::signbit(iy) ? hi[1] : lo[1], fy = std::signbit(iy) ? lo[1] : hi[1];
-        const float nz = std::signbit(iz) ? hi[2] : lo[2], fz = std::signbit(iz) ? lo[2] : hi[2];
-        float t0 = q_tmin[k], t1 = q_best_t[k] < q_tmax[k] ? q_best_t[k] : q_tmax[k];
-        float tn = (nx - q_rox[k]) * ix, tf = (fx - q_rox[k]) * ix;
-        t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-        tn = (ny - q_roy[k]) * iy, tf = (fy - q_roy[k]) * iy;
-        t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-        tn = (nz - q_roz[k]) * iz, tf = (fz - q_roz[k]) * iz;
-        t0 = tn > t0 ? tn : t0, t1 = tf < t1 ? tf : t1;
-        return t0 <= t1 * 1.0001f ? 1 : 0;
+        const Vec3 o{q_rox[k], q_roy[k], q_roz[k]}, inv_d{q_ix[k], q_iy[k], q_iz[k]};
+        return enters_box(lo, hi, o, inv_d, q_tmin[k], q_best_t[k] < q_tmax[k] ? q_best_t[k] : q_tmax[k], 1.0001f);
     };
     auto test = [&](int k) __attribute__((always_inline)) {
         const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
