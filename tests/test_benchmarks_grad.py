@@ -13,7 +13,7 @@ def read_csv(path: Path) -> list:
         return list(csv.DictReader(f))
 
 
-def test01_grad_error_quick(tmp_path):
+def test01_grad_error_quick(tmp_path, shared):
     bench = load_benchmark("bench_grad_error")
     bench.main(["--quick", "--no-mitsuba", "--out", str(tmp_path / "results"),
                 "--cache", str(tmp_path / "cache")])
@@ -32,7 +32,7 @@ def test01_grad_error_quick(tmp_path):
     assert list((tmp_path / "cache").glob("gradref_*.npz"))
 
 
-def test02_tutorial_quick(tmp_path):
+def test02_tutorial_quick(tmp_path, shared):
     bench = load_benchmark("bench_tutorial")
     bench.main(["--quick", "--no-mitsuba", "--out", str(tmp_path)])
     rows = read_csv(tmp_path / "tutorial.csv")
@@ -45,7 +45,7 @@ def test02_tutorial_quick(tmp_path):
     assert float(r["error"]) < 0.55
 
 
-def test03_gradients_small(tmp_path):
+def test03_gradients_small(tmp_path, shared):
     bench = load_benchmark("bench_gradients")
     bench.main(["--res", "16", "--spp", "1", "--repeats", "1", "--no-mitsuba", "--out", str(tmp_path)])
     rows = read_csv(tmp_path / "gradients.csv")

@@ -40,7 +40,7 @@ def test02_rays_against_embree():
         assert r["mismatch_rate"] < 1e-3, r
 
 
-def test03_threads_and_memory(tmp_path):
+def test03_threads_and_memory(tmp_path, shared):
     rows = bench_rays.run_threads(quick=True, mach="test machine")
     assert [r["threads"] for r in rows] == [1, 2] and all(r["seconds"] > 0 for r in rows)
     mem = bench_rays.run_memory(quick=True, mach="test machine", res=32, spps=(1, 2), depths=(2,))

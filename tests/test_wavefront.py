@@ -488,7 +488,7 @@ def test14_sphere_lights_in_lanes(tmp_path, monkeypatch, lights):
 
 
 @pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}])
-def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monkeypatch, integrator):
+def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monkeypatch, integrator, shared):
     # `direct` with one emitter sample and one BSDF sample computes path_li's first vertex
     # (path_settings()): it takes the lanes, and its image is direct_li's bit for bit, with
     # diffuse, mirror, glass and rough vertices under mesh lights, spheres and the sky; and so
