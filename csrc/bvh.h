@@ -62,15 +62,12 @@ public:
     /// flat_columns() skips a pass's triangles for chunks of this many rays that all miss
     /// their box (AVX-512's 16 lanes, or two or four of narrower vectors).
     static constexpr int FlatChunk = 16;
-    /// Most triangles, and spheres, of a flat BVH (see flat()): more where the build's
-    /// vectors hold 16 floats. (Renders against the traversal's on the AMD Zen 5 machine,
-    /// session 24: the cbox, 12 triangles, 0.87x the time with 16 lanes and with 8 (an
-    /// x86-64-v3 build); the cornell-box, 36, 0.94x with 16 and 1.11x with 8.)
-#ifdef __AVX512F__
+    /// Most triangles, and spheres, of a flat BVH (see flat()). Renders against the
+    /// traversal's on the AMD Zen 5 machine: the cbox, 12 triangles, 0.87x the time with 16
+    /// lanes and with 8 (session 24); the cornell-box, 36, 0.94x with 16 lanes (session 24)
+    /// and, once the rounding bound was deferred and passes skipped by chunks, 0.92x with 8
+    /// (an x86-64-v3 build, session 33: 463-471 -> 431-434 ms; it had been 1.11x).
     static constexpr int FlatTriangles = 40, FlatSpheres = 8;
-#else
-    static constexpr int FlatTriangles = 16, FlatSpheres = 8;
-#endif
     /// Build over every primitive of `geometry`, which must outlive the BVH.
     void build(const Geometry &geometry);
     /// Nearest hit of `ray` in (ray.tmin, ray.tmax); returns false on a miss.

@@ -181,8 +181,6 @@ def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
     # 16 triangles the bound on t's rounding error is applied to each ray's nearest hit alone
     # (BVH::flat_rounding_check): the far cube's case.
     scene = _small_scene(far_cube)
-    if far_cube and not scene._native.bvh_flat:
-        pytest.skip("this build keeps at most 16 triangles flat (8-float vectors)")
     assert scene._native.bvh_flat and scene._native.bvh_node_count == 1
     rng = np.random.default_rng(5)
     args = _small_scene_rays(rng)
@@ -384,8 +382,6 @@ def test11_flat_chunks_skip_only_boxes_their_rays_miss(far_cube):
     # boxes' boundaries), at the decal, past the scene, and with intervals ending at or
     # near the hits: each hit must be the traversal's, bit for bit.
     scene = _small_scene(far_cube)
-    if far_cube and not scene._native.bvh_flat:
-        pytest.skip("this build keeps at most 16 triangles flat (8-float vectors)")
     rng = np.random.default_rng(11)
     bundles = 600
     corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
