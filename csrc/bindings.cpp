@@ -587,10 +587,13 @@ struct TestRays {
 
 /// Whether each ray, given as it is, is blocked in its interval (for tests): from
 /// BVH::occluded per ray, or from BVH::occluded_columns in batches of BVH::MaxColumns
-/// (`columns`), or from BVH::occluded_traversal per ray (`traversal`).
+/// (`columns`), or from BVH::occluded_traversal per ray (`traversal`), or in a tree of one
+/// node from BVH::root_masks in batches and BVH::occluded_children per ray (`masks`, the
+/// wavefront's shadow rays there).
 torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
-                            torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal) {
+                            torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal, bool masks) {
     const TestRays rays(origins, directions, tmin, tmax);
+    if (masks && !scene.bvh.one_node()) fail("occluded_rays: masks=True needs a scene whose BVH is one node");
     torch::Tensor blocked = torch::empty({rays.n}, torch::kBool);
     std::vector<int> flags(size_t(rays.n));
     for (int64_t b = 0; b < rays.n; b += BVH::MaxColumns) {
@@ -599,9 +602,13 @@ torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Te
             scene.bvh.occluded_columns(rays.from(b), m, flags.data() + b);
             continue;
         }
+        int mask[BVH::MaxColumns];
+        if (masks) scene.bvh.root_masks(rays.from(b), m, mask);
         for (int k = 0; k < m; ++k) {
             const Ray ray = rays.from(b).ray(k);
-            flags[size_t(b + k)] = traversal ? scene.bvh.occluded_traversal(ray) : scene.bvh.occluded(ray);
+            flags[size_t(b + k)] = masks       ? scene.bvh.occluded_children(ray, mask[k])
+                                   : traversal ? scene.bvh.occluded_traversal(ray)
+                                               : scene.bvh.occluded(ray);
         }
     }
     for (int64_t i = 0; i < rays.n; ++i) blocked.data_ptr<bool>()[i] = flags[size_t(i)] != 0;
@@ -987,7 +994,8 @@ PYBIND11_MODULE(_C, m) {
     m.def("closest_hits", &closest_hits, py::arg("scene"), py::arg("origins"), py::arg("directions"),
           py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false);
     m.def("occluded_rays", &occluded_rays, py::arg("scene"), py::arg("origins"), py::arg("directions"),
-          py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false);
+          py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false,
+          py::arg("masks") = false);
     m.def("sample_count", [](const py::dict &camera, int spp) {
         SamplerDesc s = make_sampler(camera);
         set_spp(s, spp);

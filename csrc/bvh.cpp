@@ -411,7 +411,6 @@ void BVH::build(const Geometry &geometry) {
     }
     two_phase_ = false;
     root_packs_.clear();
-    inner_box_.clear();
     root_inner_mask_ = 0;
     // A larger tree whose root has leaves of triangles only, at most FlatTriangles (a room's
     // walls and lights around a detailed mesh), is searched in two phases: those leaves'
@@ -424,8 +423,6 @@ void BVH::build(const Geometry &geometry) {
             if (ref == EmptyChild) continue;
             if (!(ref & LeafBit)) {
                 root_inner_mask_ |= 1u << c;
-                for (int axis = 0; axis < 3; ++axis) inner_box_.push_back(nodes_[0].lo[axis][c]);
-                for (int axis = 0; axis < 3; ++axis) inner_box_.push_back(nodes_[0].hi[axis][c]);
                 continue;
             }
             const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
@@ -442,7 +439,6 @@ void BVH::build(const Geometry &geometry) {
             flat_spheres_.clear();
         } else {
             root_packs_.clear();
-            inner_box_.clear();
             root_inner_mask_ = 0;
         }
     }
@@ -647,27 +643,39 @@ bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit
     return found;
 }
 
-/// Whether each ray enters one of the root's inner children's boxes before min(its tmax,
-/// limit[k]): NodeTest's operations lane by lane (so the per-ray traversal's decision).
-void BVH::enters_inner(const RayColumns &r, int n, const float *limit, int *enters) const {
+/// For each ray, the mask of the root's children in `children` whose boxes it enters in
+/// (tmin, min(tmax, limit[k])): NodeTest's operations lane by lane (so the per-ray
+/// traversal's decision, for a finite origin).
+void BVH::child_masks(const RayColumns &r, int n, const float *limit, uint32_t children, int *mask) const {
     alignas(64) float inv_x[MaxColumns], inv_y[MaxColumns], inv_z[MaxColumns], tmax[MaxColumns];
     const float *q_dx = r.dx, *q_dy = r.dy, *q_dz = r.dz, *q_tmax = r.tmax;
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         inv_x[k] = 1.f / q_dx[k], inv_y[k] = 1.f / q_dy[k], inv_z[k] = 1.f / q_dz[k];
         tmax[k] = q_tmax[k] < limit[k] ? q_tmax[k] : limit[k];
-        enters[k] = 0;
+        mask[k] = 0;
     }
     const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_tmin = r.tmin;
-    for (size_t c = 0; c + 6 <= inner_box_.size(); c += 6) {
-        const float lo[3] = {inner_box_[c], inner_box_[c + 1], inner_box_[c + 2]};
-        const float hi[3] = {inner_box_[c + 3], inner_box_[c + 4], inner_box_[c + 5]};
+    const BVHNode &node = nodes_[0];
+    for (int c = 0; c < BVHWidth; ++c) {
+        if (!(children >> c & 1) || node.child[c] == EmptyChild) continue;
+        const float lo[3] = {node.lo[0][c], node.lo[1][c], node.lo[2][c]};
+        const float hi[3] = {node.hi[0][c], node.hi[1][c], node.hi[2][c]};
+        const int bit = 1 << c;
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
             const Vec3 o{q_ox[k], q_oy[k], q_oz[k]}, inv_d{inv_x[k], inv_y[k], inv_z[k]};
-            enters[k] |= enters_box(lo, hi, o, inv_d, q_tmin[k], tmax[k], BoxWiden);
+            mask[k] |= enters_box(lo, hi, o, inv_d, q_tmin[k], tmax[k], BoxWiden) ? bit : 0;
         }
     }
+}
+
+void BVH::root_masks(const RayColumns &r, int n, int *mask) const { child_masks(r, n, r.tmax, ~0u, mask); }
+
+/// Whether each ray enters one of the root's inner children's boxes before min(its tmax,
+/// limit[k]) (nonzero: the mask of those children).
+void BVH::enters_inner(const RayColumns &r, int n, const float *limit, int *enters) const {
+    child_masks(r, n, limit, root_inner_mask_, enters);
 }
 
 bool BVH::intersect_two_phase(const Ray &ray, Hit *hit) const {
@@ -1099,10 +1107,13 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
 /// from its stack: any hit ends either), without its stack and prefetches, which cost more
 /// than the tests in a room of a few dozen triangles (cornell-box 5% faster).
 bool BVH::occluded_one_node(const Ray &ray) const {
-    const BVHNode &node = nodes_[0];
     alignas(32) float t_entry[BVHWidth];
-    int mask = root_children(ray, t_entry);
-    if (!mask) return false;
+    return occluded_children(ray, root_children(ray, t_entry));
+}
+
+bool BVH::occluded_children(const Ray &ray, int mask) const {
+    if (!mask || !finite_origin(ray)) return false;
+    const BVHNode &node = nodes_[0];
     const RayPrecompPack pc(ray);
     float tmax = ray.tmax;
     Hit unused;

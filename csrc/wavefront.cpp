@@ -1537,11 +1537,18 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // Shadow rays: in lanes in a small scene with sphere lights (each ray ends on a sphere,
         // whose exact test is in double: veach-mis 117 -> 103 ms) and against the root's leaves
         // of a larger tree in two phases (BVH::two_phase(): the bunny 2% faster than one ray
-        // at a time), else one at a time (with only triangles near the rays the traversal is
-        // faster: glossy +2-3% in lanes). Then the paths that ended hand back their radiance,
-        // the rest move up.
+        // at a time); in other scenes of one node, the children whose boxes each ray enters
+        // found in lanes, then one ray at a time through those (with only triangles near the
+        // rays that is faster than their triangles in lanes: glossy +2-3% that way); else
+        // one at a time. Then the paths that ended hand back their radiance, the rest move up.
         const bool shadow_lanes = (ws.any_sphere_lights && scene.bvh.flat()) || scene.bvh.two_phase();
+        const bool shadow_masks = !shadow_lanes && scene.bvh.one_node();
+        alignas(64) int root_mask[B];
         if (shadow_lanes) shadow_rays_in_lanes(b, n, scene.bvh);
+        if (shadow_masks) {
+            static const float zeros[B] = {};  // (the shadow rays' tmin; lanes without one are not read)
+            scene.bvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, zeros, b.stmax}, n, root_mask);
+        }
         int live = 0, n_shadow = 0;
         for (int k = 0; k < n; ++k) {
             if (b.shadow[k]) {
@@ -1550,7 +1557,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
                 ray.tmax = b.stmax[k];
                 ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
-                if (shadow_lanes || !scene.bvh.occluded(ray)) {
+                const bool blocked = shadow_lanes ? false
+                                     : shadow_masks ? scene.bvh.occluded_children(ray, root_mask[k])
+                                                    : scene.bvh.occluded(ray);
+                if (!blocked) {
                     b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
                     const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
                     if (log && b.record_rough[k] >= 0) {

@@ -271,6 +271,7 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     assert 500 < int(blocked.sum()) < n - 500
     assert torch.equal(blocked, hit)
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, True), blocked)
+    assert torch.equal(tr._C.occluded_rays(scene._native, *rays, False, masks=True), blocked)
 
 
 @pytest.mark.parametrize("far_cube", [False, True])
@@ -302,16 +303,17 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
         for a, b in zip(shortcut, traversal):
             assert torch.equal(a.nan_to_num(), b.nan_to_num())
         # Shadow rays: the same rays, and each ending just short of its nearest hit (a
-        # rounding before or after it, where the box tests decide).
-        blocked = tr._C.occluded_rays(scene._native, *args, False)
-        assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *args, False, traversal=True))
+        # rounding before or after it, where the box tests decide). Also through the
+        # children each ray enters, found for a batch in lanes (BVH::root_masks, then
+        # occluded_children: the wavefront's shadow rays in these scenes).
         t_hit = traversal[0].double()
-        for scale in (1 - 1e-6, 1.0, 1 + 1e-6):
-            ends = torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
+        for scale in (None, 1 - 1e-6, 1.0, 1 + 1e-6):
+            ends = args[3] if scale is None else torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
             rays = [args[0], args[1], args[2], ends]
             blocked = tr._C.occluded_rays(scene._native, *rays, False)
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, traversal=True))
-            assert int(blocked.sum()) > (1000 if scale > 1 else -1)
+            assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, masks=True))
+            assert int(blocked.sum()) > (1000 if scale is None or scale > 1 else -1)
 
 
 def test10_two_phase_tree_is_the_traversals(shared):
