@@ -535,7 +535,7 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
 }
 
 template <bool AnyHit, bool InnerOnly>
-bool BVH::traverse(const Ray &ray, Hit *hit) const {
+bool BVH::traverse(const Ray &ray, Hit *hit, uint32_t start) const {
     if (nodes_.empty() || !finite_origin(ray)) return false;
     // The triangle test's per-ray constants, set up at the first leaf: most rays of a large
     // scene leave it after a few boxes, without reaching one.
@@ -549,7 +549,7 @@ bool BVH::traverse(const Ray &ray, Hit *hit) const {
         float t;  ///< entry distance into the box
     } stack[StackSize];
     int sp = 0;
-    uint32_t ref = 0;
+    uint32_t ref = start;
     while (true) {
         if (!(ref & LeafBit)) {
             // Test the ray against the node's child boxes.
@@ -1064,7 +1064,7 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
             Ray ray = r.ray(k);
             ray.tmax = std::min(ray.tmax, hits.t[k]);
             Hit h;
-            if (traverse<false, true>(ray, &h)) hits.t[k] = h.t, hits.u[k] = h.u, hits.v[k] = h.v, hits.prim[k] = h.prim;
+            if (traverse<false, true>(ray, &h, first_node(enters[k]))) hits.t[k] = h.t, hits.u[k] = h.u, hits.v[k] = h.v, hits.prim[k] = h.prim;
         }
     }
     // The rays to retrace, traced.
@@ -1086,7 +1086,7 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
             Hit unused;
             blocked[k] = retrace[k] != 0.f ? occluded(r.ray(k))
                          : prim[k] != ~0u  ? 1
-                         : enters[k]       ? traverse<true, true>(r.ray(k), &unused)
+                         : enters[k]       ? traverse<true, true>(r.ray(k), &unused, first_node(enters[k]))
                                            : 0;
         }
         return;

@@ -144,7 +144,13 @@ private:
     /// The traversal from the root; with InnerOnly, of the root's inner children only (the
     /// second phase of a two_phase() tree).
     template <bool AnyHit, bool InnerOnly = false>
-    bool traverse(const Ray &ray, Hit *hit) const;
+    bool traverse(const Ray &ray, Hit *hit, uint32_t start = 0) const;
+    /// Where a two_phase() tree's second phase starts for a ray whose enters_inner() mask is
+    /// `mask`: the one inner child it enters (where traverse() from the root goes next), else
+    /// the root.
+    uint32_t first_node(int mask) const {
+        return mask && !(mask & (mask - 1)) ? nodes_[0].child[__builtin_ctz(mask)] : 0u;
+    }
     /// intersect() and occluded() of a two_phase() tree.
     bool intersect_two_phase(const Ray &ray, Hit *hit) const;
     bool occluded_two_phase(const Ray &ray) const;
