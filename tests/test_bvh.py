@@ -227,11 +227,12 @@ def test05_flat_intersection_is_the_traversals_bitwise(far_cube):
 @pytest.mark.parametrize("march", ["x86-64-v3", "native"])
 def test06_flat_intersection_vectorises(tmp_path, march):
     # intersect_columns' loops over the rays (their constants and reciprocal directions, each
-    # triangle's chunks (their box test, their triangle test) and the rest, the nearest hits'
-    # rounding check, each sphere's near test, the hits' copy, and a two-phase tree's tests
-    # of the root's inner boxes) vectorise for AVX2 and for this machine: an edit that stops
-    # GCC keeps the hits bitwise equal and only makes them slower, which no other test sees.
-    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 11
+    # pass's chunks (the box tests of its halves, the triangle tests of both halves or of
+    # one) and the rest, the nearest hits' rounding check, each sphere's near test, the hits'
+    # copy, and the tests of the root's children's boxes) vectorise for AVX2 and for this
+    # machine: an edit that stops GCC keeps the hits bitwise equal and only makes them
+    # slower, which no other test sees.
+    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 14
 
 
 def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside():
@@ -377,9 +378,10 @@ def test10_two_phase_tree_is_the_traversals(shared):
 
 @pytest.mark.parametrize("far_cube", [False, True])
 def test11_flat_chunks_skip_only_boxes_their_rays_miss(far_cube):
-    # The lanes skip a pass of triangles for a chunk of 16 rays none of which enters the
-    # triangles' box (widened) before its nearest hit so far (BVH::flat_triangles, for
-    # triangles whose box is small beside the scene's). Bundles of 16 rays from one origin,
+    # The lanes skip a half of a pass of four triangles (a pair) for a chunk of 16 rays none
+    # of which enters the pair's box (widened) before its nearest hit so far, and a single
+    # triangle whose box is small beside the scene's likewise (BVH::flat_triangles; the
+    # build pairs the triangles of smallest joint box). Bundles of 16 rays from one origin,
     # as a pixel's samples are, aimed at the cubes' vertices, edges and faces (hits on the
     # boxes' boundaries), at the decal, past the scene, and with intervals ending at or
     # near the hits: each hit must be the traversal's, bit for bit.
