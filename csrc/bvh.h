@@ -59,8 +59,8 @@ class BVH {
 public:
     /// Most rays intersect_columns() takes at once.
     static constexpr int MaxColumns = 256;
-    /// flat_columns() skips a pass's triangles for chunks of this many rays that all miss
-    /// their box (AVX-512's 16 lanes, or two or four of narrower vectors).
+    /// flat_columns() skips a pair of a pass's triangles for chunks of this many rays that
+    /// all miss the pair's box (AVX-512's 16 lanes, or two or four of narrower vectors).
     static constexpr int FlatChunk = 16;
     /// Most triangles, and spheres, of a flat BVH (see flat()). Renders against the
     /// traversal's on the AMD Zen 5 machine: the cbox, 12 triangles, 0.87x the time with 16
@@ -108,7 +108,7 @@ public:
     /// `mask`: those children's packs in slot order, until one blocks it. (The wavefront's
     /// shadow rays: their masks in lanes, then one ray at a time through the children they
     /// enter, without the gathers of occluded_columns(); the cbox, cornell-box, glossy and
-    /// textured 5-10% faster than through occluded().)
+    /// textured 3-7% faster than through occluded().)
     bool occluded_children(const Ray &ray, int mask) const;
     /// Whether the tree is one node (a small scene).
     bool one_node() const { return nodes_.size() == 1; }
