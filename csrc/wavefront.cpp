@@ -803,22 +803,23 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     }
 }
 
+/// The shadow rays' tmin (every lane's: 0).
+alignas(64) const float shadow_tmin[B] = {};
+
 /// The shadow rays of lanes [0, n) marked `shadow`, in SIMD lanes (BVH::occluded_columns):
-/// `shadow` stays 1 where nothing blocks the ray.
+/// `shadow` stays 1 where nothing blocks the ray. The batch's columns as they are, with an
+/// empty interval (tmax -1) in the lanes without a shadow ray, which then enter no box and
+/// hit nothing (gathering the shadow rays into columns of their own cost veach-mis 2-4%).
 __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &bvh) {
-    alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B];
-    alignas(64) int lane[B], blocked[B];
+    alignas(64) float tmax[B];
+    alignas(64) int blocked[B];
     int m = 0;
-    for (int k = 0; k < n; ++k) {
-        if (!b.shadow[k]) continue;
-        ox[m] = b.sox[k], oy[m] = b.soy[k], oz[m] = b.soz[k];
-        dx[m] = b.sdx[k], dy[m] = b.sdy[k], dz[m] = b.sdz[k];
-        tmin[m] = 0.f, tmax[m] = b.stmax[k];
-        lane[m++] = k;
-    }
-    bvh.occluded_columns({ox, oy, oz, dx, dy, dz, tmin, tmax}, m, blocked);
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) tmax[k] = b.shadow[k] ? b.stmax[k] : -1.f, m += b.shadow[k] ? 1 : 0;
+    if (m == 0) return;
+    bvh.occluded_columns({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, shadow_tmin, tmax}, n, blocked);
     rays_traced += uint64_t(m);
-    for (int j = 0; j < m; ++j) b.shadow[lane[j]] = !blocked[j];
+    for (int k = 0; k < n; ++k) b.shadow[k] = b.shadow[k] && !blocked[k];
 }
 
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
@@ -1546,8 +1547,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         alignas(64) int root_mask[B];
         if (shadow_lanes) shadow_rays_in_lanes(b, n, scene.bvh);
         if (shadow_masks) {
-            static const float zeros[B] = {};  // (the shadow rays' tmin; lanes without one are not read)
-            scene.bvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, zeros, b.stmax}, n, root_mask);
+            // (The lanes without a shadow ray get masks that are not read.)
+            scene.bvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, shadow_tmin, b.stmax}, n, root_mask);
         }
         int live = 0, n_shadow = 0;
         for (int k = 0; k < n; ++k) {

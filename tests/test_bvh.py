@@ -273,6 +273,11 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     assert torch.equal(blocked, hit)
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, True), blocked)
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, False, masks=True), blocked)
+    # The wavefront gives lanes without a shadow ray an empty interval (tmax -1): nothing
+    # blocks those, in lanes or not, whatever their origin and direction.
+    empty = [rays[0], rays[1], rays[2], torch.full_like(rays[3], -1.0)]
+    for columns in (True, False):
+        assert not bool(tr._C.occluded_rays(scene._native, *empty, columns).any())
 
 
 @pytest.mark.parametrize("far_cube", [False, True])
