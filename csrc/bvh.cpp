@@ -739,8 +739,8 @@ int BVH::root_children(const Ray &ray, float t_entry[BVHWidth]) const {
 /// go to the child visited first), without its stack and prefetches. (Where the tree is
 /// flat, intersect_columns() tests the triangles in lanes instead, much faster: one ray at a
 /// time through this, cornell-box took 1.33x as long, cbox 1.5x. It runs for the rays the
-/// lanes leave to intersect(), and for scenes of one node that are not flat: with AVX2's
-/// 8 lanes cornell-box's 36 triangles, 3% faster than traverse<false>.)
+/// lanes leave to intersect(), and for scenes of one node that are not flat (disks,
+/// cylinders; until session 33, AVX2 builds' cornell-box, 3% faster than traverse<false>).)
 bool BVH::intersect_one_node(const Ray &ray, Hit *hit) const {
     const BVHNode &node = nodes_[0];
     alignas(32) float t_entry[BVHWidth];
