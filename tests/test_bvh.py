@@ -376,14 +376,14 @@ def test10_two_phase_tree_is_the_traversals(shared):
         rays = [args[0], args[1], args[2], ends]
         blocked = tr._C.occluded_rays(scene._native, *rays, True)
         assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False))
+        hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
+        assert int((blocked != hit).sum()) == 0
+        assert int((blocked != tr._C.occluded_rays(scene._native, *rays, False, traversal=True)).sum()) <= n // 1000
         # (Empty intervals, as the wavefront's lanes without a shadow ray have: never blocked.)
         assert not bool(tr._C.occluded_rays(scene._native, *rays[:3], torch.full_like(rays[3], -1.0), True).any())
     # The root's masks serve trees of one node only; asked of this tree, a clear error.
     with pytest.raises(ValueError, match="one node"):
         tr._C.occluded_rays(scene._native, *rays, False, masks=True)
-        hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
-        assert int((blocked != hit).sum()) == 0
-        assert int((blocked != tr._C.occluded_rays(scene._native, *rays, False, traversal=True)).sum()) <= n // 1000
 
 
 @pytest.mark.parametrize("far_cube", [False, True])
