@@ -457,22 +457,25 @@ void BVH::build(const Geometry &geometry) {
             if (taken[i]) continue;
             taken[i] = true;
             paired.push_back(flat_triangles_[i]);
+            const Bounds box_i = box_of(flat_triangles_[i]);
             size_t best = n;
             float best_area = Infinity;
             for (size_t j = i + 1; j < n; ++j) {
                 if (taken[j]) continue;
-                Bounds b = box_of(flat_triangles_[i]);
+                Bounds b = box_i;
                 b.extend(box_of(flat_triangles_[j]));
-                if (b.area() < best_area) best = j, best_area = b.area();
+                const float area = b.area();
+                if (area < best_area) best = j, best_area = area;
             }
             if (best < n) taken[best] = true, paired.push_back(flat_triangles_[best]);
         }
         flat_triangles_ = paired;
-        // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
+        // Their box's area (flat_triangles() tests a single triangle chunk by chunk where its
+        // box is small beside it).
         Bounds box;
-        for (const FlatTriangle &t : flat_triangles_)
-            for (int j = 0; j < 3; ++j) box.extend(Vec3{t.v[j][0], t.v[j][1], t.v[j][2]});
+        for (const FlatTriangle &t : flat_triangles_) box.extend(box_of(t));
         flat_area_ = box.area();
+        // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
         flat_coords_.resize(9 * n);
         for (size_t i = 0; i < n; ++i)
             for (int j = 0; j < 3; ++j)
