@@ -1,6 +1,12 @@
 // Emitters with Mitsuba 3's semantics: one-sided `area` lights attached to shapes, `point`
 // lights and the `constant` environment. Emitter sampling picks one emitter uniformly (as
 // Mitsuba does) and then a direction towards it; visibility is tested by the caller.
+// A new emitter type is an EmitterType and a case in each function below: the wavefront
+// samples it with emitter_sample() one lane at a time (wavefront.cpp's aside_emitter_stage)
+// and adds the emission rays find with emitter_eval() and emitter_pdf(), as path_li does, so
+// it needs no code there. (An escaped ray's interaction is invalid and carries no direction:
+// an environment whose radiance depends on the direction, as an envmap's, will need these
+// two to take the ray's direction.)
 #pragma once
 
 #include <optional>

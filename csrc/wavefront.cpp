@@ -88,14 +88,26 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.materials.push_back(m);
     }
     if (ws.tables.empty()) ws.tables.assign(RoughPlasticTables::Resolution, 0.f);  // (gathered from in any case)
+    // Whether the vector stage samples an emitter itself: the `constant` environment, an area
+    // light on a sphere or on a mesh of at most 8 triangles (Light::aside).
+    auto in_lanes = [&scene](const Emitter &e) {
+        if (e.type == EmitterType::Constant) return true;
+        if (e.type != EmitterType::Area) return false;
+        const Shape &shape = scene.geometry.shapes[e.shape];
+        return shape.kind == ShapeKind::Sphere ||
+               (shape.kind == ShapeKind::Mesh && shape.tri_count > 0 && shape.tri_count <= 8);
+    };
     // Beckmann's lanes make the vertex stage too large for GCC to vectorise where the scene
     // has several emitters, one of them without a mesh, and mirrors or dielectrics: there they
-    // are shaded aside (vertex_stage_for has no such instance).
-    bool non_mesh = false;
-    for (const Emitter &e : scene.emitters)
-        non_mesh = non_mesh || e.type == EmitterType::Constant ||
+    // are shaded aside (vertex_stage_for has no such instance). So they are where an emitter
+    // is sampled aside, whose delta samples beckmann_emitter_stage does not weight.
+    bool non_mesh = false, aside_lights = false;
+    for (const Emitter &e : scene.emitters) {
+        aside_lights = aside_lights || !in_lanes(e);
+        non_mesh = non_mesh || e.type == EmitterType::Constant || !in_lanes(e) ||
                    (e.type == EmitterType::Area && scene.geometry.shapes[e.shape].kind == ShapeKind::Sphere);
-    if (ws.any_beckmann && scene.emitters.size() != 1 && ws.any_delta && non_mesh) {
+    }
+    if (ws.any_beckmann && ((scene.emitters.size() != 1 && ws.any_delta && non_mesh) || aside_lights)) {
         ws.any_beckmann = false;
         ws.any_rough = false;
         any_lanes = false;
@@ -159,8 +171,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.sphere_lanes.push_back(0), ws.sphere_center.push_back(Vec3()), ws.sphere_radius.push_back(1.f);
         ws.sphere_sign.push_back(1.f);
     }
-    // The lights without a mesh (the environment, spheres) get a unit triangle in the flat
-    // arrays, which the vector stage gathers from and ignores.
+    // The lights without a mesh (the environment, spheres, those sampled aside) get a unit
+    // triangle in the flat arrays, which the vector stage gathers from and ignores.
     auto unit_triangle = [&ws]() {
         for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
         const Vec3 p[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, n[3];
@@ -178,7 +190,13 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             unit_triangle();
             continue;
         }
-        if (e.type != EmitterType::Area) return std::nullopt;
+        if (!in_lanes(e)) {
+            ws.any_aside_lights = true;
+            light.aside = 1.f;
+            ws.lights.push_back(light);
+            unit_triangle();
+            continue;
+        }
         const Shape &shape = scene.geometry.shapes[e.shape];
         light.area = shape.area;
         if (shape.kind == ShapeKind::Sphere) {
@@ -192,7 +210,6 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             unit_triangle();
             continue;
         }
-        if (shape.kind != ShapeKind::Mesh || shape.tri_count == 0 || shape.tri_count > 8) return std::nullopt;
         const Geometry &g = scene.geometry;
         light.has_normals = shape.has_normals;
         light.flip_normals = shape.flip_normals;
@@ -260,6 +277,10 @@ struct Batch {
     float espdf[B], obr[B], obg[B], obb[B], sampled0[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
+    // The emitter samples of lights sampled aside (aside_emitter_stage): direction, point,
+    // density, weight, and whether it is a delta sample, a direction (to infinity) and a sample.
+    float adx[B], ady[B], adz[B], apx[B], apy[B], apz[B], apdf[B], awr[B], awg[B], awb[B];
+    float adelta[B], ainf[B], aok[B];
     // With one light (light_point_stage): the emitter sample's two numbers, and the point on
     // the light's mesh they give, its face normal and its interpolated vertex normal.
     float eux[B], euy[B], lpx[B], lpy[B], lpz[B], lfx[B], lfy[B], lfz[B], lvx[B], lvy[B], lvz[B];
@@ -646,17 +667,38 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float sampled = dist != 0.f ? smooth : 0.f;
         sampled = pdf > 0.f ? sampled : 0.f;
         sampled = dot(d, ln) < 0.f ? sampled : 0.f;
+        // Whether the shadow ray is a direction's, to infinity (spawn_ray, not spawn_ray_to).
+        float to_infinity = 0.f;
         if constexpr (NonMesh) {
             // The environment (emitter_sample's `constant`): a direction, always a sample.
             const float env = light.environment;
             d = select(env != 0.f, env_d, d);
             pdf = env != 0.f ? InvFourPi : pdf;
             sampled = env != 0.f ? smooth : sampled;
+            // A light sampled aside: emitter_sample()'s sample (aside_emitter_stage).
+            const float aside = light.aside;
+            d = select(aside != 0.f, Vec3{b.adx[k], b.ady[k], b.adz[k]}, d);
+            lp = select(aside != 0.f, Vec3{b.apx[k], b.apy[k], b.apz[k]}, lp);
+            sampled = aside != 0.f ? b.aok[k] * smooth : sampled;  // (both 1 or 0)
+            to_infinity = aside != 0.f ? b.ainf[k] : env;
         }
         float es_pdf = pdf / float(n_lights);
+        if constexpr (NonMesh) es_pdf = light.aside != 0.f ? b.apdf[k] : es_pdf;
         float inv_pdf = 1.f / es_pdf;
-        Color3f ew{light.radiance.v[0] * inv_pdf, light.radiance.v[1] * inv_pdf, light.radiance.v[2] * inv_pdf};
-        sampled = (ew.v[0] != 0.f) | (ew.v[1] != 0.f) | (ew.v[2] != 0.f) ? sampled : 0.f;  // not null
+        float ew_r = light.radiance.v[0] * inv_pdf, ew_g = light.radiance.v[1] * inv_pdf;
+        float ew_b = light.radiance.v[2] * inv_pdf;
+        // Not null (a float flag taken before the weight's selects: a comparison of selected
+        // values stops the vectoriser).
+        float lit = (ew_r != 0.f) | (ew_g != 0.f) | (ew_b != 0.f) ? 1.f : 0.f;
+        if constexpr (NonMesh) {
+            const float aside_lit = (b.awr[k] != 0.f) | (b.awg[k] != 0.f) | (b.awb[k] != 0.f) ? 1.f : 0.f;
+            lit = light.aside != 0.f ? aside_lit : lit;
+            ew_r = light.aside != 0.f ? b.awr[k] : ew_r;
+            ew_g = light.aside != 0.f ? b.awg[k] : ew_g;
+            ew_b = light.aside != 0.f ? b.awb[k] : ew_b;
+        }
+        const Color3f ew{ew_r, ew_g, ew_b};
+        sampled = lit != 0.f ? sampled : 0.f;
 
         // The BSDF towards it (bsdf_eval_pdf, with twosided's flip) and its MIS weight.
         Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
@@ -689,18 +731,22 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf);
+        if constexpr (NonMesh) {  // (a delta sample, a point light's, is not MIS-weighted)
+            const float delta_sample = light.aside != 0.f ? b.adelta[k] : 0.f;
+            w = delta_sample != 0.f ? 1.f : w;
+        }
         b.cr[k] = b.br[k] * f.v[0] * ew.v[0] * w;
         b.cg[k] = b.bg[k] * f.v[1] * ew.v[1] * w;
         b.cb[k] = b.bb[k] * f.v[2] * ew.v[2] * w;
-        // Its shadow ray (SurfaceInteraction::spawn_ray_to; the environment's: spawn_ray).
-        Vec3 so = offset_p(b, k, NonMesh ? select(light.environment != 0.f, d, lp - p) : lp - p);
+        // Its shadow ray (SurfaceInteraction::spawn_ray_to; a direction's: spawn_ray).
+        Vec3 so = offset_p(b, k, NonMesh ? select(to_infinity != 0.f, d, lp - p) : lp - p);
         Vec3 sd = lp - so;
         float sdist = norm(sd);
         sd = sd / sdist;
         float stmax = sdist * (1.f - ShadowEpsilon);
         if constexpr (NonMesh) {
-            sd = select(light.environment != 0.f, d, sd);
-            stmax = light.environment != 0.f ? Infinity : stmax;
+            sd = select(to_infinity != 0.f, d, sd);
+            stmax = to_infinity != 0.f ? Infinity : stmax;
         }
         b.shadow[k] = sampled != 0.f;
         b.light[k] = index;
@@ -843,7 +889,38 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
             if (!ws.any_mesh_lights) return instance(one_light, delta, std::integral_constant<int, 2>{});
         }
         return instance(one_light, delta, std::integral_constant<int, E ? 1 : 0>{});
-    }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights);
+    }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights || ws.any_aside_lights);
+}
+
+/// The emitter samples of the lanes whose emitter the vector stage does not sample itself
+/// (Light::aside): emitter_sample() for each, one lane at a time, from a copy of the lane's
+/// stream (its next two numbers, which the vector stage then draws again and selects the same
+/// emitter with), into the a* columns, which the vector stage takes for those lanes. So a new
+/// emitter type needs only emitters.h's code to run in the wavefront: the BSDF towards its
+/// sample, the MIS weight, the shadow ray and the BSDF sample stay in lanes.
+void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const RenderContext<RGB<float>> &ctx) {
+    const int n_lights = int(ws.lights.size());
+    for (int k = 0; k < n; ++k) {
+        // (A mirror or a dielectric samples no emitter. The other lanes get no sample.)
+        const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
+        uint64_t state = b.state[k];
+        Vec2 u;
+        u.x = uniform_float(pcg32_next(state, b.inc[k]));
+        u.y = uniform_float(pcg32_next(state, b.inc[k]));
+        const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
+        std::optional<EmitterSample<RGB<float>>> es;
+        if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
+            es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
+        const EmitterSample<RGB<float>> none;
+        const EmitterSample<RGB<float>> &e = es ? *es : none;
+        b.aok[k] = es ? 1.f : 0.f;
+        b.adx[k] = e.d.x, b.ady[k] = e.d.y, b.adz[k] = e.d.z;
+        b.apx[k] = e.p.x, b.apy[k] = e.p.y, b.apz[k] = e.p.z;
+        b.apdf[k] = e.pdf;
+        b.awr[k] = es ? e.weight[0] : 0.f, b.awg[k] = es ? e.weight[1] : 0.f, b.awb[k] = es ? e.weight[2] : 0.f;
+        b.adelta[k] = e.delta ? 1.f : 0.f;
+        b.ainf[k] = std::isinf(e.dist) ? 1.f : 0.f;
+    }
 }
 
 /// The Beckmann lanes' emitter samples, after the vector stage evaluated them with GGX's
@@ -1498,6 +1575,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // Shade the other vertices in lanes (Beckmann's visible normals first); then the
         // vertices shaded aside return.
         const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
+        if (ws.any_aside_lights) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws);
         if (log) {

@@ -76,6 +76,11 @@ struct WavefrontScene {
         float sphere = 0.f;
         float cx = 0.f, cy = 0.f, cz = 0.f;
         float radius = 1.f, outside_radius2 = 1.f, sign = 1.f;
+        /// 1: an emitter the vector stage does not sample itself (a point light, an area light
+        /// on a disk, a cylinder or a mesh of more than 8 triangles; any new emitter type):
+        /// emitter_sample() samples it, one lane at a time, before the vector stage, which
+        /// then takes that sample (no mesh in the flat arrays), else 0.
+        float aside = 0.f;
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     /// Per primitive (triangles, then Geometry::analytic): its material, and whether the shade
@@ -106,6 +111,7 @@ struct WavefrontScene {
     bool environment = false;         ///< whether one is the `constant` environment
     bool any_sphere_lights = false;   ///< whether some are spheres
     bool any_mesh_lights = false;     ///< whether some are meshes
+    bool any_aside_lights = false;    ///< whether some are sampled aside (Light::aside)
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t. (The
     // environment's and the spheres' entries are a unit triangle, gathered and ignored.)
