@@ -99,15 +99,13 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     };
     // Beckmann's lanes make the vertex stage too large for GCC to vectorise where the scene
     // has several emitters, one of them without a mesh, and mirrors or dielectrics: there they
-    // are shaded aside (vertex_stage_for has no such instance). So they are where an emitter
-    // is sampled aside, whose delta samples beckmann_emitter_stage does not weight.
-    bool non_mesh = false, aside_lights = false;
-    for (const Emitter &e : scene.emitters) {
-        aside_lights = aside_lights || !in_lanes(e);
+    // are shaded aside (vertex_stage_for has no such instance). (An emitter sampled aside,
+    // Light::aside, counts as one without a mesh.)
+    bool non_mesh = false;
+    for (const Emitter &e : scene.emitters)
         non_mesh = non_mesh || e.type == EmitterType::Constant || !in_lanes(e) ||
                    (e.type == EmitterType::Area && scene.geometry.shapes[e.shape].kind == ShapeKind::Sphere);
-    }
-    if (ws.any_beckmann && ((scene.emitters.size() != 1 && ws.any_delta && non_mesh) || aside_lights)) {
+    if (ws.any_beckmann && scene.emitters.size() != 1 && ws.any_delta && non_mesh) {
         ws.any_beckmann = false;
         ws.any_rough = false;
         any_lanes = false;
@@ -935,6 +933,8 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
     alignas(64) int mat[B], light[B];
     alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], nwx[B], nwy[B], nwz[B];
     alignas(64) float espdf[B], sampled0[B], obr[B], obg[B], obb[B];
+    // (A light sampled aside: its sample's weight and whether it is a delta one, else zeros.)
+    alignas(64) float aside[B], awr[B], awg[B], awb[B], adelta[B];
     for (int j = 0; j < count; ++j) {
         const int k = lanes[j];
         mat[j] = b.mat[k], light[j] = b.light[k];
@@ -942,6 +942,10 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
         nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
         espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k], obr[j] = b.obr[k], obg[j] = b.obg[k], obb[j] = b.obb[k];
+        const bool a = ws.lights[size_t(b.light[k])].aside != 0.f;
+        aside[j] = a ? 1.f : 0.f;
+        awr[j] = a ? b.awr[k] : 0.f, awg[j] = a ? b.awg[k] : 0.f, awb[j] = a ? b.awb[k] : 0.f;
+        adelta[j] = a ? b.adelta[k] : 0.f;
     }
     alignas(64) float cr[B], cg[B], cb[B], sampled[B];
 #pragma GCC ivdep
@@ -956,11 +960,16 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         RoughEval e = rough_eval<Microfacet::Beckmann>(m, m.plastic, 1.f, MicrofacetTerms{}, tables, wi, wo, a, s);
         float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
         sampled[j] = f_sum != 0.f ? sampled0[j] : 0.f;
-        // (The emitter sample's weight, as the vector stage computed it.)
+        // (The emitter sample's weight and MIS weight, as the vector stage computed them.)
         const int l = 3 * light[j];
         const float inv_pdf = 1.f / espdf[j];
-        const float ew[3] = {radiance[l] * inv_pdf, radiance[l + 1] * inv_pdf, radiance[l + 2] * inv_pdf};
+        // (The radiance gathered before the selects: gathers under a condition are masked
+        // gathers, which GCC does not emit for AVX2.)
+        const float er = radiance[l] * inv_pdf, eg = radiance[l + 1] * inv_pdf, eb = radiance[l + 2] * inv_pdf;
+        const float ew[3] = {aside[j] != 0.f ? awr[j] : er, aside[j] != 0.f ? awg[j] : eg,
+                             aside[j] != 0.f ? awb[j] : eb};
         float w = mis_weight(espdf[j], e.pdf);
+        w = adelta[j] != 0.f ? 1.f : w;
         cr[j] = obr[j] * e.r * ew[0] * w;
         cg[j] = obg[j] * e.g * ew[1] * w;
         cb[j] = obb[j] * e.b * ew[2] * w;

@@ -615,23 +615,29 @@ LAMP = {"type": "point", "position": [0.3, 1.3, 0.5], "intensity": {"type": "rgb
 
 @pytest.mark.parametrize("integrator", ["path", "direct"])
 @pytest.mark.parametrize("lights", ["point light and meshes", "point light alone", "cube light", "disk light",
-                                    "point light, sky, delta and rough BSDFs"])
+                                    "point light, sky, delta and rough BSDFs", "point light and Beckmann"])
 def test21_emitters_sampled_aside(tmp_path, monkeypatch, lights, integrator):
     # Emitters the vector stage does not sample itself (a point light, an area light on a
     # cube's 12 triangles or on a disk) take the wavefront: emitter_sample() samples them one
     # lane at a time (aside_emitter_stage), the vector stage evaluates the BSDF, the MIS weight
-    # (none for a point light's delta sample) and the shadow ray. The image is path_li's bit
-    # for bit, with one light or several, beside the sky, mirrors, GGX and Beckmann (whose
-    # lanes are then shaded aside too); the point light's intensity and a reflectance are
-    # differentiated in lanes with the tape's gradients. `direct` (path tracing's first
-    # vertex) likewise gives direct_li's image.
+    # (none for a point light's delta sample) and the shadow ray; Beckmann lanes redo it in
+    # beckmann_emitter_stage. The image is path_li's bit for bit, with one light or several,
+    # beside the sky, mirrors, GGX and Beckmann (in lanes; shaded aside where a mirror and
+    # several lights, one without a mesh, leave no instance for it); the lights' emission
+    # and a reflectance are differentiated in lanes with the tape's gradients. `direct` (path
+    # tracing's first vertex) likewise gives direct_li's image.
     d = room_dict(tmp_path, {"type": integrator} if integrator == "direct" else None)
     light = "lamp.intensity.value"
-    if lights == "point light alone":
+    if lights in ("point light alone", "point light and Beckmann"):
         for key in ("quad", "strip", "panel"):
             del d[key]
     if lights.startswith("point light"):
         d["lamp"] = LAMP
+    if lights == "point light and Beckmann":
+        d["plate"] = {"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.3, 0.4]).rotate([1, 0, 0], -60).scale(0.25),
+                      "bsdf": {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.2}}
+        d["coat"] = {"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, -0.2],
+                     "bsdf": {"type": "roughplastic", "distribution": "beckmann", "alpha": 0.15}}
     elif lights == "cube light":
         d["box"] = {"type": "cube", "to_world": tr.Transform.translate([0.3, 1.3, 0.2]).scale(0.1),
                     "emitter": {"type": "area", "radiance": 3.0}}
@@ -653,7 +659,7 @@ def test21_emitters_sampled_aside(tmp_path, monkeypatch, lights, integrator):
     assert float(scalar.mean()) > 0.05
     # Without the aside light the image is another: its samples reached the film.
     without = {k: v for k, v in d.items() if k not in ("lamp", "box", "disk")}
-    if lights != "point light alone":
+    if lights not in ("point light alone", "point light and Beckmann"):
         assert not torch.equal(tr.render(tr.load_dict(without), spp=7, seed=5), wavefront)
-    if integrator == "path" and lights != "point light, sky, delta and rough BSDFs":  # (Beckmann: the tape)
+    if integrator == "path" and lights != "point light, sky, delta and rough BSDFs":  # (a Beckmann vertex aside: the tape)
         assert_lanes_give_the_tapes_gradients(scene, [light, "floor.bsdf.reflectance.value"], monkeypatch)
