@@ -663,3 +663,21 @@ def test21_emitters_sampled_aside(tmp_path, monkeypatch, lights, integrator):
         assert not torch.equal(tr.render(tr.load_dict(without), spp=7, seed=5), wavefront)
     if integrator == "path" and lights != "point light, sky, delta and rough BSDFs":  # (a Beckmann vertex aside: the tape)
         assert_lanes_give_the_tapes_gradients(scene, [light, "floor.bsdf.reflectance.value"], monkeypatch)
+
+
+@pytest.mark.parametrize("integrator", [{"max_depth": 1}, {"max_depth": 2}, {"hide_emitters": True},
+                                        {"max_depth": 4, "rr_depth": 1}, {"rr_depth": 2}])
+@pytest.mark.parametrize("light", ["point", "cube"])
+def test22_emitters_sampled_aside_at_every_path_setting(tmp_path, monkeypatch, integrator, light):
+    # test21's aside emitters with paths cut at their first or second vertex, with the
+    # emitters hidden from the camera, and with roulette from the first vertices: the
+    # wavefront's image is still path_li's bit for bit.
+    d = room_dict(tmp_path, integrator)
+    if light == "point":
+        d["lamp"] = LAMP
+    else:
+        d["box"] = {"type": "cube", "to_world": tr.Transform.translate([0.3, 1.3, 0.2]).scale(0.1),
+                    "emitter": {"type": "area", "radiance": 3.0}}
+    wavefront, scalar = render_both(tr.load_dict(d), monkeypatch, spp=9, seed=3)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
