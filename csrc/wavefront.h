@@ -18,14 +18,16 @@
 // images are bitwise identical to the scalar integrator's (tests/test_wavefront.py). The
 // vector stage shades diffuse BSDFs (`twosided` or not), the roughconductor and roughplastic
 // (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
-// vector stage, from the same random numbers), with their emitter samples on area emitters on spheres and on meshes of at
-// most 8 triangles, and the smooth conductor and dielectric; their
+// vector stage, from the same random numbers), with their emitter samples on area emitters
+// on spheres and on meshes of at most 8 triangles and on the `constant` environment (other
+// emitters' samples are taken by emitter_sample() one path at a time, just before the vector
+// stage, which then takes them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
-// kind, as path_settings() makes it) with the `independent` sampler, when every emitter is such
-// a sphere or mesh or the `constant` environment and some BSDF is one of those; other
-// scenes, and the autodiff number types, take path_li. render_bwd also traces its paths with
+// kind, as path_settings() makes it) with the `independent` sampler, when the scene has a
+// triangle and some BSDF is one of those; other scenes, and the autodiff number types, take
+// path_li. render_bwd also traces its paths with
 // it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX
 // conductors' roughness (WavefrontVertex).
 #pragma once
