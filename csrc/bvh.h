@@ -182,8 +182,6 @@ private:
     bool intersect_one_node(const Ray &ray, Hit *hit) const;
     /// occluded() for a tree of one node.
     bool occluded_one_node(const Ray &ray) const;
-public:
-
 
     /// The flat tree's primitives (empty unless flat()): triangle vertices with their ids,
     /// and the ids of the spheres.
