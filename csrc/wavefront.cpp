@@ -942,7 +942,7 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
         nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
         espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k], obr[j] = b.obr[k], obg[j] = b.obg[k], obb[j] = b.obb[k];
-        const bool a = ws.lights[size_t(b.light[k])].aside != 0.f;
+        const bool a = ws.any_aside_lights && ws.lights[size_t(b.light[k])].aside != 0.f;
         aside[j] = a ? 1.f : 0.f;
         awr[j] = a ? b.awr[k] : 0.f, awg[j] = a ? b.awg[k] : 0.f, awb[j] = a ? b.awb[k] : 0.f;
         adelta[j] = a ? b.adelta[k] : 0.f;
