@@ -589,26 +589,28 @@ struct TestRays {
 /// BVH::occluded per ray, or from BVH::occluded_columns in batches of BVH::MaxColumns
 /// (`columns`), or from BVH::occluded_traversal per ray (`traversal`), or in a tree of one
 /// node from BVH::root_masks in batches and BVH::occluded_children per ray (`masks`, the
-/// wavefront's shadow rays there).
+/// wavefront's shadow rays there); with `shadow`, in the shadow rays' tree (Scene::shadow_tree()).
 torch::Tensor occluded_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions,
-                            torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal, bool masks) {
+                            torch::Tensor tmin, torch::Tensor tmax, bool columns, bool traversal, bool masks,
+                            bool shadow) {
     const TestRays rays(origins, directions, tmin, tmax);
-    if (masks && !scene.bvh.one_node()) fail("occluded_rays: masks=True needs a scene whose BVH is one node");
+    const BVH &bvh = shadow ? scene.shadow_tree() : scene.bvh;
+    if (masks && !bvh.one_node()) fail("occluded_rays: masks=True needs a scene whose BVH is one node");
     torch::Tensor blocked = torch::empty({rays.n}, torch::kBool);
     std::vector<int> flags(size_t(rays.n));
     for (int64_t b = 0; b < rays.n; b += BVH::MaxColumns) {
         int m = int(std::min<int64_t>(BVH::MaxColumns, rays.n - b));
         if (columns) {
-            scene.bvh.occluded_columns(rays.from(b), m, flags.data() + b);
+            bvh.occluded_columns(rays.from(b), m, flags.data() + b);
             continue;
         }
         int mask[BVH::MaxColumns];
-        if (masks) scene.bvh.root_masks(rays.from(b), m, mask);
+        if (masks) bvh.root_masks(rays.from(b), m, mask);
         for (int k = 0; k < m; ++k) {
             const Ray ray = rays.from(b).ray(k);
-            flags[size_t(b + k)] = masks       ? scene.bvh.occluded_children(ray, mask[k])
-                                   : traversal ? scene.bvh.occluded_traversal(ray)
-                                               : scene.bvh.occluded(ray);
+            flags[size_t(b + k)] = masks       ? bvh.occluded_children(ray, mask[k])
+                                   : traversal ? bvh.occluded_traversal(ray)
+                                               : bvh.occluded(ray);
         }
     }
     for (int64_t i = 0; i < rays.n; ++i) blocked.data_ptr<bool>()[i] = flags[size_t(i)] != 0;
@@ -968,7 +970,12 @@ PYBIND11_MODULE(_C, m) {
         .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
         .def_property_readonly("bvh_flat", [](const Scene &s) { return s.bvh.flat(); })
         .def_property_readonly("bvh_two_phase", [](const Scene &s) { return s.bvh.two_phase(); })
-        .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); });
+        .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); })
+        .def_property_readonly("shadow_primitive_count", [](const Scene &s) { return s.shadow_primitives; })
+        .def("build_shadow_tree", [](Scene &s, bool cull) {
+            py::gil_scoped_release release;
+            s.build_shadow_tree(cull);
+        }, py::arg("cull"));
     m.def("render_fwd", &render_image, py::arg("scene"), py::arg("camera"), py::arg("integrator"),
           py::arg("params"), py::arg("spp"), py::arg("seed"), py::arg("row_begin") = 0,
           py::arg("row_end") = -1);
@@ -995,7 +1002,7 @@ PYBIND11_MODULE(_C, m) {
           py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false);
     m.def("occluded_rays", &occluded_rays, py::arg("scene"), py::arg("origins"), py::arg("directions"),
           py::arg("tmin"), py::arg("tmax"), py::arg("columns"), py::arg("traversal") = false,
-          py::arg("masks") = false);
+          py::arg("masks") = false, py::arg("shadow") = false);
     m.def("sample_count", [](const py::dict &camera, int spp) {
         SamplerDesc s = make_sampler(camera);
         set_spp(s, spp);

@@ -336,18 +336,86 @@ struct Collapser {
 
 }  // namespace
 
+std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vector<Vec3> &points) {
+    // The points every segment's ends lie among (convexly): the meshes' vertices, the
+    // corners of the analytic shapes' boxes, and the given points.
+    std::vector<Vec3> p = geometry.positions;
+    for (uint32_t s : geometry.analytic) {
+        const Bounds b = analytic_bounds(geometry.shapes[s]);
+        for (int c = 0; c < 8; ++c) p.push_back({(c & 1) ? b.hi.x : b.lo.x, (c & 2) ? b.hi.y : b.lo.y, (c & 4) ? b.hi.z : b.lo.z});
+    }
+    p.insert(p.end(), points.begin(), points.end());
+    // Tested first: the points extreme along 13 directions (a 26-DOP's), which lie on
+    // both sides of a plane through the inside of the scene (a mesh's triangle in a room).
+    std::vector<Vec3> order;
+    const int dirs[13][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}, {1, 1, 0}, {1, -1, 0}, {1, 0, 1}, {1, 0, -1},
+                             {0, 1, 1}, {0, 1, -1}, {1, 1, 1}, {1, 1, -1}, {1, -1, 1}, {1, -1, -1}};
+    if (!p.empty()) {
+        for (const auto &d : dirs) {
+            size_t lo = 0, hi = 0;
+            auto proj = [&](const Vec3 &x) { return double(d[0]) * x.x + double(d[1]) * x.y + double(d[2]) * x.z; };
+            for (size_t i = 1; i < p.size(); ++i) {
+                if (proj(p[i]) < proj(p[lo])) lo = i;
+                if (proj(p[i]) > proj(p[hi])) hi = i;
+            }
+            order.push_back(p[lo]);
+            order.push_back(p[hi]);
+        }
+    }
+    order.insert(order.end(), p.begin(), p.end());
+    // Point tests at most (a large convex mesh alone has many supporting triangles, each
+    // tested against every point): past it the remaining triangles stay blockers.
+    int64_t budget = int64_t(1) << 25;
+    std::vector<uint32_t> blockers;
+    for (uint32_t prim = 0; prim < geometry.primitive_count(); ++prim) {
+        if (!geometry.is_triangle(prim) || budget <= 0) {
+            blockers.push_back(prim);
+            continue;
+        }
+        const Triangle &t = geometry.triangles[prim];
+        const Vec3 &a = geometry.positions[t.v[0]], &b = geometry.positions[t.v[1]], &c = geometry.positions[t.v[2]];
+        const double e1[3] = {double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z};
+        const double e2[3] = {double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z};
+        const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+        const double n_size = std::abs(n[0]) + std::abs(n[1]) + std::abs(n[2]);
+        bool above = false, below = false;
+        // (A degenerate triangle is hit by no ray; it stays, as it is, a blocker.)
+        if (!(n_size > 0.0)) above = below = true;
+        size_t i = 0;
+        for (; i < order.size() && !(above && below); ++i) {
+            const double d[3] = {double(order[i].x) - a.x, double(order[i].y) - a.y, double(order[i].z) - a.z};
+            const double side = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+            // Within 1e-5 of the plane (relative to the distance) counts as in it: a
+            // rectangle's two triangles, rounded, are one plane.
+            const double tol = 1e-5 * n_size * std::max({std::abs(d[0]), std::abs(d[1]), std::abs(d[2])});
+            above = above || side > tol;
+            below = below || side < -tol;
+        }
+        budget -= int64_t(i);
+        if (above && below) blockers.push_back(prim);
+    }
+    return blockers;
+}
+
 void BVH::build(const Geometry &geometry) {
+    std::vector<uint32_t> all(geometry.primitive_count());
+    for (uint32_t i = 0; i < uint32_t(all.size()); ++i) all[i] = i;
+    build(geometry, all);
+}
+
+void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
     geometry_ = &geometry;
-    uint32_t n = geometry.primitive_count();
+    uint32_t n = uint32_t(subset.size());
     std::vector<PrimInfo> prims(n);
     for (uint32_t i = 0; i < n; ++i) {
+        const uint32_t id = subset[i];
         Bounds b;
-        if (geometry.is_triangle(i)) {
-            for (uint32_t v : geometry.triangles[i].v) b.extend(geometry.positions[v]);
+        if (geometry.is_triangle(id)) {
+            for (uint32_t v : geometry.triangles[id].v) b.extend(geometry.positions[v]);
         } else {
-            b = analytic_bounds(geometry.analytic_shape(i));
+            b = analytic_bounds(geometry.analytic_shape(id));
         }
-        prims[i] = {b, b.center(), i, !geometry.is_triangle(i)};
+        prims[i] = {b, b.center(), id, !geometry.is_triangle(id)};
     }
     nodes_.clear();
     packs_.clear();

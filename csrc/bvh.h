@@ -55,6 +55,13 @@ struct HitColumns {
     uint32_t *prim;
 };
 
+/// The primitives that can block a segment between two points of the scene (its surfaces,
+/// and `points`: point lights' positions) in its interior: all but the triangles whose plane
+/// has the whole scene on one side, as a room's walls seen from inside, which such a
+/// segment crosses nowhere between its ends. Shadow rays towards an emitter are such
+/// segments, so their tree can leave those triangles out (Scene::shadow_bvh).
+std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vector<Vec3> &points);
+
 class BVH {
 public:
     /// Most rays intersect_columns() takes at once.
@@ -70,6 +77,8 @@ public:
     static constexpr int FlatTriangles = 40, FlatSpheres = 8;
     /// Build over every primitive of `geometry`, which must outlive the BVH.
     void build(const Geometry &geometry);
+    /// Build over the primitives `subset` of `geometry` (ids as in Geometry; hits report them).
+    void build(const Geometry &geometry, const std::vector<uint32_t> &subset);
     /// Nearest hit of `ray` in (ray.tmin, ray.tmax); returns false on a miss.
     bool intersect(const Ray &ray, Hit *hit) const;
     /// Whether anything blocks `ray` in (ray.tmin, ray.tmax); stops at the first hit.

@@ -12,6 +12,29 @@ void Scene::build() {
         shape.needs_uv = shape.bsdf < 0 || bsdfs[shape.bsdf].reads_uv();
     geometry.prepare();
     bvh.build(geometry);
+    build_shadow_tree(true);
+}
+
+void Scene::build_shadow_tree(bool cull) {
+    // Where no emitter lies at infinity, every shadow ray ends at a point of the scene (on an
+    // area light, or a point light's position), and the triangles with the whole scene on
+    // one side of their plane cannot block it.
+    shadow_culled = false;
+    shadow_bvh = BVH();
+    shadow_primitives = geometry.primitive_count();
+    if (!cull) return;
+    bool at_infinity = false;
+    std::vector<Vec3> points;
+    for (const Emitter &e : emitters) {
+        at_infinity = at_infinity || e.type == EmitterType::Constant;
+        if (e.type == EmitterType::Point) points.push_back(e.position);
+    }
+    if (at_infinity) return;
+    std::vector<uint32_t> blockers = shadow_blockers(geometry, points);
+    if (blockers.size() == geometry.primitive_count()) return;
+    shadow_bvh.build(geometry, blockers);
+    shadow_culled = true;
+    shadow_primitives = uint32_t(blockers.size());
 }
 
 namespace {

@@ -26,6 +26,12 @@ class Scene {
 public:
     Geometry geometry;
     BVH bvh;
+    /// The tree of shadow rays, when it differs from bvh: without the triangles no shadow
+    /// ray can meet (shadow_blockers(): a room's walls). Only in scenes without an emitter
+    /// at infinity, whose shadow rays all end at a point of the scene.
+    BVH shadow_bvh;
+    bool shadow_culled = false;
+    uint32_t shadow_primitives = 0;  ///< the primitives shadow rays are tested against
     std::vector<BSDF> bsdfs;
     std::vector<Emitter> emitters;
     std::vector<Texture> textures;
@@ -34,6 +40,8 @@ public:
 
     /// Build acceleration structures and sampling tables; call once after adding everything.
     void build();
+    /// (Re)build shadow_bvh; without `cull`, shadow rays take bvh (for tests).
+    void build_shadow_tree(bool cull);
 
     SurfaceInteraction intersect(const Ray &ray) const {
         ++rays_traced;
@@ -57,9 +65,12 @@ public:
         if (*emitter < 0) return SurfaceInteraction();
         return geometry.interaction(ray, hit);
     }
+    /// The tree shadow rays (rays towards an emitter's sample) are tested against.
+    const BVH &shadow_tree() const { return shadow_culled ? shadow_bvh : bvh; }
+    /// Whether a shadow ray is blocked.
     bool occluded(const Ray &ray) const {
         ++rays_traced;
-        return bvh.occluded(ray);
+        return shadow_tree().occluded(ray);
     }
 
     /// Emitter attached to the surface hit, or the environment when the ray escaped.

@@ -1629,13 +1629,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // found in lanes, then one ray at a time through those (with only triangles near the
         // rays that is faster than their triangles in lanes: glossy +2-3% that way); else
         // one at a time. Then the paths that ended hand back their radiance, the rest move up.
-        const bool shadow_lanes = (ws.any_sphere_lights && scene.bvh.flat()) || scene.bvh.two_phase();
-        const bool shadow_masks = !shadow_lanes && scene.bvh.one_node();
+        // (Against the shadow rays' tree: Scene::shadow_tree().)
+        const BVH &sbvh = scene.shadow_tree();
+        const bool shadow_lanes = (ws.any_sphere_lights && sbvh.flat()) || sbvh.two_phase();
+        const bool shadow_masks = !shadow_lanes && sbvh.one_node();
         alignas(64) int root_mask[B];
-        if (shadow_lanes) shadow_rays_in_lanes(b, n, scene.bvh);
+        if (shadow_lanes) shadow_rays_in_lanes(b, n, sbvh);
         if (shadow_masks) {
             // (The lanes without a shadow ray get masks that are not read.)
-            scene.bvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, shadow_tmin, b.stmax}, n, root_mask);
+            sbvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, shadow_tmin, b.stmax}, n, root_mask);
         }
         int live = 0, n_shadow = 0;
         for (int k = 0; k < n; ++k) {
@@ -1646,8 +1648,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 ray.tmax = b.stmax[k];
                 ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
                 const bool blocked = shadow_lanes ? false
-                                     : shadow_masks ? scene.bvh.occluded_children(ray, root_mask[k])
-                                                    : scene.bvh.occluded(ray);
+                                     : shadow_masks ? sbvh.occluded_children(ray, root_mask[k])
+                                                    : sbvh.occluded(ray);
                 if (!blocked) {
                     b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
                     const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];

@@ -9,7 +9,7 @@ import torch
 
 import torch_rbpt as tr
 from torch_rbpt import meshes
-from conftest import assert_marked_loops_vectorise
+from conftest import SHARED, assert_marked_loops_vectorise
 
 
 def _mesh_scene(mesh_dict):
@@ -430,3 +430,102 @@ def test11_flat_chunks_skip_only_boxes_their_rays_miss(far_cube):
     flat = tr._C.closest_hits(scene._native, *args, True)
     for x, y in zip(flat, traversal):
         assert torch.equal(x.nan_to_num(), y.nan_to_num())
+
+
+def _shadow_scenes(integrator=None):
+    """Scenes for the shadow rays' tree (Scene::shadow_bvh), with the number of primitives it
+    should keep: a closed room seen from inside (its 12 walls left out) around a box, a ball
+    and a light; the same under a constant environment (shadow rays to infinity: nothing left
+    out); a cube seen from outside under a point light in front of it (only the face towards
+    the light can block a segment between two of the scene's points)."""
+    sensor = lambda origin, target: {  # noqa: E731
+        "type": "perspective", "fov": 70, "to_world": tr.Transform.look_at(origin, target, [0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 24, "height": 16, "rfilter": {"type": "box"}}}
+    integrator = integrator or {"type": "path"}
+    room = {
+        "type": "scene", "sensor": sensor([0.2, 0.1, 1.8], [0, -0.3, 0]), "integrator": integrator,
+        "room": {"type": "cube", "flip_normals": True, "to_world": tr.Transform.scale(2),
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}},
+        "box": {"type": "cube", "to_world": tr.Transform.translate([0.4, -0.6, -0.3]).rotate([0, 1, 0], 25).scale(0.35)},
+        "ball": {"type": "sphere", "center": [-0.7, -1.5, 0.2], "radius": 0.5},
+        "light": {"type": "rectangle", "to_world": tr.Transform.translate([0, 1.9, 0]).rotate([1, 0, 0], 90).scale(0.5),
+                  "emitter": {"type": "area", "radiance": 8.0}},
+    }
+    lit_cube = {
+        "type": "scene", "sensor": sensor([3, 2.5, 4], [0, 0, 0]), "integrator": integrator,
+        "cube": {"type": "cube", "to_world": tr.Transform.rotate([0, 1, 0], 10),
+                 "bsdf": {"type": "diffuse", "reflectance": 0.6}},
+        "light": {"type": "point", "position": [0.5, 0.3, 5.0], "intensity": 30.0},
+    }
+    outside = {k: v for k, v in room.items() if k not in ("ball", "light")}
+    outside["light"] = {"type": "point", "position": [0.5, 0.3, 5.0], "intensity": 30.0}
+    # (The room's primitives: 26 triangles and the ball.)
+    # (With the point light's position, for segments to it.)
+    return [("room", tr.load_dict(room), 15, None),
+            ("room lit from outside", tr.load_dict(outside), 14, [0.5, 0.3, 5.0]),
+            ("room under the sky", tr.load_dict({**room, "sky": {"type": "constant", "radiance": 0.5}}), 27, None),
+            ("lit cube", tr.load_dict(lit_cube), 2, [0.5, 0.3, 5.0])]
+
+
+def test12_shadow_tree_leaves_out_only_what_cannot_block_a_shadow_ray():
+    # Shadow rays run between two points of the scene (a surface's, and a light's); a
+    # triangle whose plane has the whole scene on one side (a room's wall) cannot block such
+    # a segment, so their tree leaves those out. Segments between points on every surface
+    # (each wall, the box, the ball, the light, the point light) must be blocked in that
+    # tree exactly where they are in the whole scene's.
+    rng = np.random.default_rng(12)
+    for name, scene, kept, light in _shadow_scenes():
+        native = scene._native
+        assert native.shadow_primitive_count == kept, name
+        # Points on the surfaces: the hits of rays from inside the room, or from around the cube.
+        n = 4000
+        if name.startswith("room"):
+            o = rng.uniform(-1.8, 1.8, (n, 3))
+        else:
+            o = rng.normal(size=(n, 3))
+            o = 4 * o / np.linalg.norm(o, axis=1, keepdims=True)
+        d = rng.normal(size=(n, 3)) if name.startswith("room") else rng.uniform(-0.9, 0.9, (n, 3)) - o
+        o, d = torch.tensor(o, dtype=torch.float32), torch.tensor(d, dtype=torch.float32)
+        t, prim, _, _ = tr._C.closest_hits(native, o, d, torch.zeros(n), torch.full((n,), float("inf")), False)
+        hit = prim >= 0
+        assert int(hit.sum()) > n // 2, name
+        p = (o + t.unsqueeze(1) * d)[hit]
+        targets = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(3))]
+        if light is not None:
+            targets = torch.cat([targets[: len(p) // 2], torch.tensor([light]).expand(len(p) - len(p) // 2, 3)])
+        seg = targets - p
+        m = len(p)
+        # (Between the ends: a ten-thousandth of the segment off each, as a shadow ray's
+        # offset origin and shortened end would be.)
+        args = (p, seg, torch.full((m,), 1e-4), torch.full((m,), 1 - 1e-4))
+        whole = tr._C.occluded_rays(native, *args, False)
+        for columns in (False, True):
+            shadow = tr._C.occluded_rays(native, *args, columns, shadow=True)
+            assert torch.equal(shadow, whole), name
+        assert 0.05 * m < int(whole.sum()) < 0.95 * m, name
+
+
+@pytest.mark.parametrize("integrator", ["path", "direct"])
+def test13_shadow_tree_renders_the_whole_trees_image(integrator, monkeypatch):
+    # Renders with the shadow rays' tree and with the whole tree (build_shadow_tree(False))
+    # are the same bit for bit, in SIMD lanes and through the scalar integrator (the shared
+    # cornell-box too, where present: its walls are left out of its shadow tree).
+    settings = {"type": "path", "max_depth": 5} if integrator == "path" else {"type": "direct"}
+    scenes = [(name, scene) for name, scene, _, _ in _shadow_scenes(settings)]
+    cornell = SHARED / "cornell-box" / "scene_v3.xml"
+    if integrator == "path" and cornell.exists():
+        scene = tr.load_file(cornell)
+        scene.sensor.film.width = scene.sensor.film.height = 24
+        assert scene._native.shadow_primitive_count < scene._native.triangle_count
+        scenes.append(("cornell-box", scene))
+    for name, scene in scenes:
+        for wavefront in ("1", "0"):
+            monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", wavefront)
+            scene._native.build_shadow_tree(True)
+            culled = tr.render(scene, spp=16, seed=5)
+            scene._native.build_shadow_tree(False)
+            whole = tr.render(scene, spp=16, seed=5)
+            scene._native.build_shadow_tree(True)
+            # (Nothing reaches the room from a light outside it.)
+            assert (float(whole.max()) == 0) == (name == "room lit from outside"), name
+            assert torch.equal(culled, whole), (name, wavefront)
