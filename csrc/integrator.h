@@ -18,19 +18,30 @@ struct IntegratorSettings {
     int rr_depth = 5;
     int emitter_samples = 1, bsdf_samples = 1;  ///< direct
     bool hide_emitters = false;  ///< drop emitters seen directly by the camera
+    /// `path` only as path_settings() makes it of `direct` with no BSDF or no emitter samples:
+    /// whether vertices sample an emitter, and whether the emission BSDF samples find counts
+    /// (without, a path ends after its emitter sample). Either alone is not MIS-weighted.
+    bool emitter_sampling = true, bsdf_sampling = true;
 };
 
 /// The `path` settings under which path_li computes what `cfg` computes, with the same random
 /// numbers and the same operations in the same order: `path` itself, and `direct` with one
 /// emitter sample and one BSDF sample, which is path_li's first vertex with max_depth 2 and
 /// no roulette (compare direct_li with path_li and path_vertex: its MIS weights' factors
-/// 1/2 and 1/1 are exact). Nothing for other `direct` settings. (The wavefront runs `path`
-/// only; tests/test_wavefront.py checks `direct` against direct_li bitwise.)
+/// 1/2 and 1/1 are exact); also with one emitter sample and no BSDF sample, or the reverse
+/// (emitter_sampling, bsdf_sampling: the other technique's density in the MIS weight is
+/// direct_li's times 0, as its factor is 0). Nothing for other `direct` settings. (The
+/// wavefront runs `path` only; tests/test_wavefront.py checks `direct` against direct_li
+/// bitwise.)
 inline std::optional<IntegratorSettings> path_settings(const IntegratorSettings &cfg) {
     if (cfg.type == IntegratorType::Path) return cfg;
-    if (cfg.emitter_samples != 1 || cfg.bsdf_samples != 1 || cfg.max_depth == 0) return std::nullopt;
+    const bool one_each = cfg.emitter_samples == 1 && cfg.bsdf_samples == 1;
+    const bool one_alone = cfg.emitter_samples + cfg.bsdf_samples == 1 && cfg.emitter_samples >= 0 && cfg.bsdf_samples >= 0;
+    if (!(one_each || one_alone) || cfg.max_depth == 0) return std::nullopt;
     IntegratorSettings path = cfg;
     path.type = IntegratorType::Path;
+    path.emitter_sampling = cfg.emitter_samples == 1;
+    path.bsdf_sampling = cfg.bsdf_samples == 1;
     path.max_depth = 2;
     path.rr_depth = 2;  // (roulette starts where depth + 1 >= rr_depth: after the last vertex)
     return path;
@@ -120,16 +131,18 @@ RBPT_INLINE bool path_vertex(const RenderContext<S> &ctx, const IntegratorSettin
 
     // Sample an emitter and add its MIS-weighted direct illumination. The BSDF comes
     // first: where it is null (e.g. the emitter is below the horizon), no shadow ray.
-    if (bsdf.smooth()) {
+    if (cfg.emitter_sampling && bsdf.smooth()) {
         auto es = emitter_sample<S>(ctx, si.p, sampler.next_2d());
         if (es && !is_null(es->weight)) {
             BSDFEval<S> f = bsdf_eval_for(bsdf, ctx, bsdf_index, si, *es);
             if (!is_null(f.value) && !scene.occluded(shadow_ray(si, *es))) {
-                float w = es->delta ? 1.f : mis_weight(es->pdf, f.pdf);
+                const float bsdf_pdf = cfg.bsdf_sampling ? f.pdf : f.pdf * 0.f;
+                float w = es->delta ? 1.f : mis_weight(es->pdf, bsdf_pdf);
                 path.L += path.beta * f.value * es->weight * real_t<S>(w);
             }
         }
     }
+    if (!cfg.bsdf_sampling) return false;
 
     // Sample the BSDF for the direction of the next ray.
     float u1 = sampler.next_1d();
@@ -141,7 +154,8 @@ RBPT_INLINE bool path_vertex(const RenderContext<S> &ctx, const IntegratorSettin
     path.eta *= bs->eta;
     path.prev_p = si.p;
     path.prev_pdf = bs->pdf;
-    path.prev_delta = bs->delta;
+    // (Without emitter sampling, the emission found is weighted as a delta sample's: by 1.)
+    path.prev_delta = bs->delta || !cfg.emitter_sampling;
     si.spawn_ray(si.to_world(bs->wo), &ray);
 
     // Possibly terminate the path with Russian roulette. The survival probability is the

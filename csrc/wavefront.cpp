@@ -507,7 +507,7 @@ struct LightTriangles {
 /// (masked loads of one address, which it does not vectorise), and in vertex_stage's own
 /// loop they stopped the vectoriser in other instances.
 template <bool Delta, int Tris>
-__attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
+__attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws, float nee) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *cdf = ws.cdf.data();  // (the first light's entries)
     const LightTriangles tris(ws);
@@ -516,7 +516,7 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
         const WavefrontScene::Material &m = mats[b.mat[k]];
         // (vertex_stage's draw_emitter: `rough` is zero in every material where its instance
         // has no rough BSDF.)
-        const bool draw_emitter = !Delta || m.diffuse + m.rough != 0.f;
+        const bool draw_emitter = (Delta ? (m.diffuse + m.rough) * nee : nee) != 0.f;
         Vec2 u;
         u.x = next_1d(b, k, draw_emitter);
         u.y = next_1d(b, k, draw_emitter);
@@ -575,11 +575,14 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // vectorise the boolean selects it makes of && chains and of booleans combined with
     // values that were themselves selected.
     const int rr_depth = cfg.rr_depth;
+    // Whether vertices sample an emitter, and whether that sample is MIS-weighted against the
+    // BSDF's (IntegratorSettings::emitter_sampling and bsdf_sampling: `direct` with one alone).
+    const float nee = cfg.emitter_sampling ? 1.f : 0.f, bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
     if constexpr (OneLight) {
         // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
         // from its fourth entry on.)
-        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws);
-        else light_point_stage<Delta, 8>(b, n, ws);
+        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws, nee);
+        else light_point_stage<Delta, 8>(b, n, ws, nee);
     }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -590,8 +593,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const float mirror = Delta ? m.mirror : 0.f;
         const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
         const float beckmann = Rough >= 2 ? m.beckmann : 0.f;
-        const float smooth = shade * (diffuse + rough);
-        const bool draw_emitter = !Delta || diffuse + rough != 0.f;
+        const float smooth = shade * (diffuse + rough) * nee;
+        const bool draw_emitter = (Delta ? (diffuse + rough) * nee : nee) != 0.f;
         const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
         Vec3 p{b.px[k], b.py[k], b.pz[k]};
         // The shading frame (its to_local and to_world written out: a Frame assigned in the
@@ -728,7 +731,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         }
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
         sampled = f_sum != 0.f ? sampled : 0.f;
-        float w = mis_weight(es_pdf, f_pdf);
+        float w = mis_weight(es_pdf, f_pdf * bsdf_mis);
         if constexpr (NonMesh) {  // (a delta sample, a point light's, is not MIS-weighted)
             const float delta_sample = light.aside != 0.f ? b.adelta[k] : 0.f;
             w = delta_sample != 0.f ? 1.f : w;
@@ -825,6 +828,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float u_rr = next_1d(b, k, alive * roulette != 0.f);
         float dies = u_rr >= q ? roulette : 0.f;
         alive = dies != 0.f ? 0.f : alive;
+        alive = bsdf_mis != 0.f ? alive : 0.f;  // (without BSDF sampling, the path ends here)
         float inv_q = 1.f / q;
         br = roulette != 0.f ? br * inv_q : br;
         bg = roulette != 0.f ? bg * inv_q : bg;
@@ -839,7 +843,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.eta[k] = path_eta;
         b.prev_px[k] = p.x, b.prev_py[k] = p.y, b.prev_pz[k] = p.z;
         b.prev_pdf[k] = bpdf;
-        b.prev_delta[k] = diffuse + rough != 0.f ? 0 : 1;
+        b.prev_delta[k] = (diffuse + rough) * nee != 0.f ? 0 : 1;
         b.ox[k] = o.x, b.oy[k] = o.y, b.oz[k] = o.z;
         b.dx[k] = dn.x, b.dy[k] = dn.y, b.dz[k] = dn.z;
         b.tmin[k] = 0.f;
@@ -925,7 +929,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 /// terms: the BSDF towards each with Beckmann's (rough_eval, as the vector stage would), its
 /// MIS weight and contribution, for the `count` lanes listed in `lanes` (beckmann_stage's).
 /// (A loop of its own: with these terms in it GCC does not vectorise the vertex stage.)
-void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const WavefrontScene &ws) {
+void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const WavefrontScene &ws, float bsdf_mis) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *radiance = ws.radiance.data(), *tables = ws.tables.data();
     // The lanes' inputs, packed (one lane at a time: GCC does not vectorise gathers whose
@@ -968,7 +972,7 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         const float er = radiance[l] * inv_pdf, eg = radiance[l + 1] * inv_pdf, eb = radiance[l + 2] * inv_pdf;
         const float ew[3] = {aside[j] != 0.f ? awr[j] : er, aside[j] != 0.f ? awg[j] : eg,
                              aside[j] != 0.f ? awb[j] : eb};
-        float w = mis_weight(espdf[j], e.pdf);
+        float w = mis_weight(espdf[j], e.pdf * bsdf_mis);
         w = adelta[j] != 0.f ? 1.f : w;
         cr[j] = obr[j] * e.r * ew[0] * w;
         cg[j] = obg[j] * e.g * ew[1] * w;
@@ -1015,7 +1019,8 @@ struct BeckmannSearches {
 
 /// The visible normals of the Beckmann lanes' BSDF samples, before the vector stage, and
 /// the microfacet terms towards the sampled direction: from the random numbers the vector
-/// stage will draw for the sample (after the emitter sample's two), in the frame it samples
+/// stage will draw for the sample (after the emitter sample's two, with `emitter_sampling`),
+/// in the frame it samples
 /// in (twosided's flip), with a normal where the sample takes one (a conductor's; a
 /// roughplastic's where u1 picks the specular lobe). The random numbers come from a copy of
 /// each lane's stream, one lane at a time; the rest runs in SIMD lanes over the listed lanes
@@ -1023,7 +1028,7 @@ struct BeckmannSearches {
 /// Newton search a step per pass while any lane's continues (most converge in two), its
 /// rare long tails one lane at a time. Lists the Beckmann lanes in `lanes` and returns their
 /// number.
-int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
+int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes, bool emitter_sampling) {
     constexpr int B = WavefrontBatch;
     // The Beckmann lanes listed (their microfacet columns cleared for the others' selects).
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -1061,12 +1066,12 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
         lane[j] = k, mat[j] = b.mat[k];
         wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = flipped_wz[sampling[j]];
         state[j] = b.state[k], inc[j] = b.inc[k];
+        if (emitter_sampling) pcg32_next(state[j], inc[j]), pcg32_next(state[j], inc[j]);
     }
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
         uint64_t s = state[j];
-        pcg32_next(s, inc[j]), pcg32_next(s, inc[j]);
         const float u1 = uniform_float(pcg32_next(s, inc[j]));
         ux[j] = uniform_float(pcg32_next(s, inc[j]));
         uy[j] = uniform_float(pcg32_next(s, inc[j]));
@@ -1583,10 +1588,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // Shade the other vertices in lanes (Beckmann's visible normals first); then the
         // vertices shaded aside return.
-        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
-        if (ws.any_aside_lights) aside_emitter_stage(b, n, ws, ctx);
+        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane, cfg.emitter_sampling) : 0;
+        // (Without emitter sampling the vector stage reads no aside sample.)
+        if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
-        if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws);
+        if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws, cfg.bsdf_sampling ? 1.f : 0.f);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
             for (int k = 0; ws.any_delta && k < n; ++k) {

@@ -25,7 +25,7 @@
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
-// kind, as path_settings() makes it) with the `independent` sampler, when the scene has a
+// kind or of one kind alone, as path_settings() makes it) with the `independent` sampler, when the scene has a
 // triangle and some BSDF is one of those; other scenes, and the autodiff number types, take
 // path_li. render_bwd also traces its paths with
 // it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX

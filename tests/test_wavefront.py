@@ -350,7 +350,7 @@ def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change
         d["sky"] = {"type": "constant"}
     elif change == "stratified":
         d["sensor"]["sampler"] = {"type": "stratified"}
-    elif change == "direct":  # (one sample of each is path tracing's first vertex: lanes)
+    elif change == "direct":  # (one sample of each, or of one alone, is path tracing's first vertex: lanes)
         d["integrator"] = {"type": "direct", "emitter_samples": 2}
     scene = tr.load_dict(d, dtype=torch.float64 if change == "float64" else torch.float32)
     assert not uses_wavefront(scene)
@@ -484,12 +484,16 @@ def test14_sphere_lights_in_lanes(tmp_path, monkeypatch, lights):
     assert_lanes_give_the_tapes_gradients(scene, [radiance, "floor.bsdf.reflectance.value"], monkeypatch)
 
 
-@pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}])
+@pytest.mark.parametrize("integrator", [{}, {"hide_emitters": True}, {"emitter_samples": 1, "bsdf_samples": 0},
+                                        {"emitter_samples": 0, "bsdf_samples": 1}])
 def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monkeypatch, integrator, shared):
     # `direct` with one emitter sample and one BSDF sample computes path_li's first vertex
     # (path_settings()): it takes the lanes, and its image is direct_li's bit for bit, with
     # diffuse, mirror, glass and rough vertices under mesh lights, spheres and the sky; and so
-    # on the shared veach-mis (roughplastic plates, spheres down to the cone's expansion).
+    # on the shared veach-mis (roughplastic plates, Beckmann's, spheres down to the cone's
+    # expansion). So also with one emitter sample alone (the path ends after it) or one BSDF
+    # sample alone (no emitter sample drawn), neither MIS-weighted: veach-mis's other two
+    # integrators.
     d = sphere_lights(room_dict(tmp_path), "spheres and meshes")
     d["integrator"] = {"type": "direct", **integrator}
     d["sky"] = {"type": "constant", "radiance": 0.2}
@@ -504,7 +508,9 @@ def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monke
     # The backward pass in lanes, against the tape's (direct_li's) gradients.
     keys = ["floor.bsdf.reflectance.value", "bulb.emitter.radiance.value", "metal.bsdf.alpha.value"]
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
-    veach = tr.load_file(SHARED / "veach-mis/integrator_direct_both.xml")
+    veach_file = {(1, 0): "lum", (0, 1): "bsdf"}.get((integrator.get("emitter_samples", 1), integrator.get("bsdf_samples", 1)), "both")
+    veach = tr.load_file(SHARED / f"veach-mis/integrator_direct_{veach_file}.xml")
+    assert uses_wavefront(veach)
     veach.sensor.film.width, veach.sensor.film.height = 48, 32
     wavefront, scalar = render_both(veach, monkeypatch, spp=4, seed=3)
     assert torch.equal(wavefront, scalar)
