@@ -732,6 +732,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             RGB<float> Le = Params<RGB<float>>::value_of(values.data[size_t(e.radiance)], values.numel[size_t(e.radiance)]);
             lanes = lanes && Le[0] != 0.f && Le[1] != 0.f && Le[2] != 0.f;
         }
+        // (Its film positions in lanes are the independent sampler's: the other samplers'
+        // gradients come from the tape.)
+        lanes = lanes && camera.sampler.type == SamplerType::Independent;
         if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
         // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
         // path that reaches them.)

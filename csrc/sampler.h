@@ -245,6 +245,19 @@ public:
         return s;
     }
 
+    /// What a sampler of any kind continues from besides its SamplerDesc: its stream, and
+    /// the stratified kinds' pixel seed, sample index, dimension and row or scrambles (paths
+    /// traced in SIMD lanes keep them as columns, wavefront.h).
+    struct Parts {
+        uint64_t state, inc;
+        uint32_t seq, index, dim, aux[3];
+    };
+    Parts parts() const { return {state_, inc_, seq_, index_, dim_, {aux_[0], aux_[1], aux_[2]}}; }
+    /// The sampler `desc` continuing from `parts`.
+    Sampler(const SamplerDesc &desc, const Parts &parts)
+        : state_(parts.state), inc_(parts.inc), type_(desc.type), desc_(&desc), seq_(parts.seq),
+          index_(parts.index), dim_(parts.dim), aux_{parts.aux[0], parts.aux[1], parts.aux[2]} {}
+
     float next_1d() {
         if (type_ == SamplerType::Independent) return uniform();
         return stratified_1d();
@@ -289,7 +302,7 @@ private:
     SamplerType type_ = SamplerType::Independent;
     const SamplerDesc *desc_ = nullptr;
     uint32_t seq_ = 0, index_ = 0, dim_ = 0;
-    uint32_t aux_[3];  ///< orthogonal: the array row (a0, a1); ldsampler: the scrambles
+    uint32_t aux_[3] = {0, 0, 0};  ///< orthogonal: the array row (a0, a1); ldsampler: the scrambles
 };
 
 /// One dimension stratified into sample_count intervals, one sample each.

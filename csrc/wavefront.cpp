@@ -48,10 +48,10 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     const Scene &scene = ctx.scene;
     std::optional<IntegratorSettings> path = path_settings(cfg);
     if (!path || path->max_depth == 0) return std::nullopt;
-    if (camera.sampler.type != SamplerType::Independent) return std::nullopt;
     // (The interaction stage gathers from the triangles, clamping indices to the last one.)
     if (scene.emitters.empty() || scene.geometry.triangles.empty()) return std::nullopt;
     WavefrontScene ws;
+    ws.predrawn = camera.sampler.type != SamplerType::Independent;
     bool any_lanes = false;
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
         using L = WavefrontScene::Lane;
@@ -241,6 +241,11 @@ struct Batch {
     float eta[B], prev_pdf[B], prev_px[B], prev_py[B], prev_pz[B];
     int prev_delta[B];
     uint64_t state[B], inc[B];
+    // The rest of its sampler (Sampler::Parts) where it is not `independent`, and the
+    // numbers of this vertex, drawn before the stages that take them (draw_stage): the
+    // emitter sample's two, the BSDF sample's three, the roulette's.
+    uint32_t sseq[B], sindex[B], sdim[B], saux0[B], saux1[B], saux2[B];
+    float pe0[B], pe1[B], pb1[B], pb2x[B], pb2y[B], prr[B];
     int seq[B];    ///< the sample's index in the caller's arrays
     int depth[B];  ///< the path's vertex count so far (path_li's `depth`)
     // The closest hit of this bounce's ray (Hit's fields).
@@ -279,9 +284,9 @@ struct Batch {
     // density, weight, and whether it is a delta sample, a direction (to infinity) and a sample.
     float adx[B], ady[B], adz[B], apx[B], apy[B], apz[B], apdf[B], awr[B], awg[B], awb[B];
     float adelta[B], ainf[B], aok[B];
-    // With one light (light_point_stage): the emitter sample's two numbers, and the point on
-    // the light's mesh they give, its face normal and its interpolated vertex normal.
-    float eux[B], euy[B], lpx[B], lpy[B], lpz[B], lfx[B], lfy[B], lfz[B], lvx[B], lvy[B], lvz[B];
+    // With one light (light_point_stage): the point on the light's mesh the emitter sample's
+    // numbers give, its face normal and its interpolated vertex normal.
+    float lpx[B], lpy[B], lpz[B], lfx[B], lfy[B], lfz[B], lvx[B], lvy[B], lvz[B];
 };
 
 /// c ? a : b, component by component (a ternary on whole vectors selects an address, which
@@ -332,6 +337,19 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     float u = uniform_float(pcg32_next(state, b.inc[k]));
     b.state[k] = draw ? state : b.state[k];
     return u;
+}
+
+/// Store a sampler's state into lane k.
+RBPT_INLINE void store_sampler(Batch &b, int k, const Sampler::Parts &p) {
+    b.state[k] = p.state, b.inc[k] = p.inc;
+    b.sseq[k] = p.seq, b.sindex[k] = p.index, b.sdim[k] = p.dim;
+    b.saux0[k] = p.aux[0], b.saux1[k] = p.aux[1], b.saux2[k] = p.aux[2];
+}
+
+/// Lane k's sampler `desc` (its stream alone for the independent sampler).
+RBPT_INLINE Sampler load_sampler(const Batch &b, int k, const SamplerDesc &desc) {
+    return Sampler(desc, Sampler::Parts{b.state[k], b.inc[k], b.sseq[k], b.sindex[k], b.sdim[k],
+                                        {b.saux0[k], b.saux1[k], b.saux2[k]}});
 }
 
 // ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling and
@@ -496,8 +514,8 @@ struct LightTriangles {
     RBPT_INLINE Vec3 face_normal(int t) const { return {face[0][t], face[1][t], face[2][t]}; }
 };
 
-/// With one light: each lane's emitter sample's two numbers (vertex_stage's first draws) and
-/// the point they give on the light's mesh (its first Tris triangles; the rest are padding),
+/// With one light: the point each lane's emitter sample's numbers (draw_stage's) give on the
+/// light's mesh (its first Tris triangles; the rest are padding),
 /// with its face normal and interpolated vertex normal, in a loop of their own. The light's
 /// triangles are the same in every lane, so each lane's are picked from all of them by sums
 /// of products with 1 or 0 (x * 1 + y * 0 is x for finite values, but that a zero's sign
@@ -507,20 +525,12 @@ struct LightTriangles {
 /// (masked loads of one address, which it does not vectorise), and in vertex_stage's own
 /// loop they stopped the vectoriser in other instances.
 template <bool Delta, int Tris>
-__attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws, float nee) {
-    const WavefrontScene::Material *mats = ws.materials.data();
+__attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
     const float *cdf = ws.cdf.data();  // (the first light's entries)
     const LightTriangles tris(ws);
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
-        const WavefrontScene::Material &m = mats[b.mat[k]];
-        // (vertex_stage's draw_emitter: `rough` is zero in every material where its instance
-        // has no rough BSDF.)
-        const bool draw_emitter = (Delta ? (m.diffuse + m.rough) * nee : nee) != 0.f;
-        Vec2 u;
-        u.x = next_1d(b, k, draw_emitter);
-        u.y = next_1d(b, k, draw_emitter);
-        b.eux[k] = u.x, b.euy[k] = u.y;
+        Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
         u.x = std::min(u.x, 0.99999994f);  // (emitter_sample's reuse of u.x, one light)
         // The triangle (vertex_stage's search: the CDF's entries at most u.x, whose padding
         // no u reaches) and u.x within it.
@@ -581,8 +591,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     if constexpr (OneLight) {
         // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
         // from its fourth entry on.)
-        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws, nee);
-        else light_point_stage<Delta, 8>(b, n, ws, nee);
+        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws);
+        else light_point_stage<Delta, 8>(b, n, ws);
     }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -594,7 +604,6 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
         const float beckmann = Rough >= 2 ? m.beckmann : 0.f;
         const float smooth = shade * (diffuse + rough) * nee;
-        const bool draw_emitter = (Delta ? (diffuse + rough) * nee : nee) != 0.f;
         const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
         Vec3 p{b.px[k], b.py[k], b.pz[k]};
         // The shading frame (its to_local and to_world written out: a Frame assigned in the
@@ -602,10 +611,9 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 fs{b.sx[k], b.sy[k], b.sz[k]}, ft{b.tx[k], b.ty[k], b.tz[k]}, fn{b.fx[k], b.fy[k], b.fz[k]};
 
         // Sample an emitter (emitter_sample: one chosen uniformly, u.x reused) and a point on
-        // its mesh (Geometry::sample_direction), at diffuse vertices (BSDF::smooth).
-        Vec2 u;
-        u.x = OneLight ? b.eux[k] : next_1d(b, k, draw_emitter);
-        u.y = OneLight ? b.euy[k] : next_1d(b, k, draw_emitter);
+        // its mesh (Geometry::sample_direction), at diffuse vertices (BSDF::smooth), from
+        // draw_stage's numbers.
+        Vec2 u{b.pe0[k], b.pe1[k]};
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
         const WavefrontScene::Light &light = OneLight ? first : lights[index];
@@ -756,10 +764,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.stmax[k] = stmax;
 
         // Sample the BSDF for the next ray (bsdf_sample, in the flipped frame).
-        float u1 = next_1d(b, k, true);
-        Vec2 u2;
-        u2.x = next_1d(b, k, true);
-        u2.y = next_1d(b, k, true);
+        const float u1 = b.pb1[k];
+        const Vec2 u2{b.pb2x[k], b.pb2y[k]};
         // Diffuse: cosine-weighted (DiffuseBSDF::sample's tests: wi and wo above the surface).
         Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
         float cos_pdf = warp::square_to_cosine_hemisphere_pdf(cos_wo);
@@ -825,7 +831,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float beta_max = std::max(rr_r, std::max(rr_g, rr_b));
         alive = beta_max > 0.f ? alive : 0.f;
         float q = std::min(beta_max * path_eta * path_eta, MaxSurvival);
-        float u_rr = next_1d(b, k, alive * roulette != 0.f);
+        const float u_rr = b.prr[k];
         float dies = u_rr >= q ? roulette : 0.f;
         alive = dies != 0.f ? 0.f : alive;
         alive = bsdf_mis != 0.f ? alive : 0.f;  // (without BSDF sampling, the path ends here)
@@ -870,6 +876,48 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
     for (int k = 0; k < n; ++k) b.shadow[k] = b.shadow[k] && !blocked[k];
 }
 
+/// The random numbers of this vertex for the lanes marked `shade`, drawn before the stages
+/// that take them, in path_vertex's order: the emitter sample's two where the BSDF samples an
+/// emitter (BSDF::smooth, with emitter sampling), the BSDF sample's three, and the
+/// roulette's where it applies (a path that ends first never reads the numbers past its
+/// end), into the p* columns; the lanes' samplers move on. The independent sampler's in SIMD
+/// lanes from each lane's stream; the others' (WavefrontScene::predrawn) one lane at a time
+/// by Sampler, with its permutations and jitter.
+void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg, const SamplerDesc &desc) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float nee = cfg.emitter_sampling ? 1.f : 0.f;
+    const int rr_depth = cfg.rr_depth;
+    if (!ws.predrawn) {
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            // (Every lane: those not shaded get their stream back or end.)
+            const WavefrontScene::Material &m = mats[b.mat[k]];
+            const bool emitter = (m.diffuse + m.rough) * nee != 0.f;
+            b.pe0[k] = next_1d(b, k, emitter);
+            b.pe1[k] = next_1d(b, k, emitter);
+            b.pb1[k] = next_1d(b, k, true);
+            b.pb2x[k] = next_1d(b, k, true);
+            b.pb2y[k] = next_1d(b, k, true);
+            b.prr[k] = next_1d(b, k, b.depth[k] + 1 >= rr_depth);
+        }
+        return;
+    }
+    for (int k = 0; k < n; ++k) {
+        if (!b.shade[k]) continue;
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        Sampler sampler = load_sampler(b, k, desc);
+        if ((m.diffuse + m.rough) * nee != 0.f) {
+            const Vec2 u = sampler.next_2d();
+            b.pe0[k] = u.x, b.pe1[k] = u.y;
+        }
+        b.pb1[k] = sampler.next_1d();
+        const Vec2 u2 = sampler.next_2d();
+        b.pb2x[k] = u2.x, b.pb2y[k] = u2.y;
+        if (b.depth[k] + 1 >= rr_depth) b.prr[k] = sampler.next_1d();
+        store_sampler(b, k, sampler.parts());
+    }
+}
+
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
@@ -895,9 +943,9 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
 }
 
 /// The emitter samples of the lanes whose emitter the vector stage does not sample itself
-/// (Light::aside): emitter_sample() for each, one lane at a time, from a copy of the lane's
-/// stream (its next two numbers, which the vector stage then draws again and selects the same
-/// emitter with), into the a* columns, which the vector stage takes for those lanes. So a new
+/// (Light::aside): emitter_sample() for each, one lane at a time, from draw_stage's numbers
+/// (with which the vector stage selects the same emitter), into the a* columns, which the
+/// vector stage takes for those lanes. So a new
 /// emitter type needs only emitters.h's code to run in the wavefront: the BSDF towards its
 /// sample, the MIS weight, the shadow ray and the BSDF sample stay in lanes.
 void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const RenderContext<RGB<float>> &ctx) {
@@ -905,10 +953,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
     for (int k = 0; k < n; ++k) {
         // (A mirror or a dielectric samples no emitter. The other lanes get no sample.)
         const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
-        uint64_t state = b.state[k];
-        Vec2 u;
-        u.x = uniform_float(pcg32_next(state, b.inc[k]));
-        u.y = uniform_float(pcg32_next(state, b.inc[k]));
+        const Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
         const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
         std::optional<EmitterSample<RGB<float>>> es;
         if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
@@ -1018,9 +1063,8 @@ struct BeckmannSearches {
 };
 
 /// The visible normals of the Beckmann lanes' BSDF samples, before the vector stage, and
-/// the microfacet terms towards the sampled direction: from the random numbers the vector
-/// stage will draw for the sample (after the emitter sample's two, with `emitter_sampling`),
-/// in the frame it samples
+/// the microfacet terms towards the sampled direction: from the BSDF sample's numbers
+/// (draw_stage's), in the frame the vector stage samples
 /// in (twosided's flip), with a normal where the sample takes one (a conductor's; a
 /// roughplastic's where u1 picks the specular lobe). The random numbers come from a copy of
 /// each lane's stream, one lane at a time; the rest runs in SIMD lanes over the listed lanes
@@ -1028,7 +1072,7 @@ struct BeckmannSearches {
 /// Newton search a step per pass while any lane's continues (most converge in two), its
 /// rare long tails one lane at a time. Lists the Beckmann lanes in `lanes` and returns their
 /// number.
-int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes, bool emitter_sampling) {
+int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     constexpr int B = WavefrontBatch;
     // The Beckmann lanes listed (their microfacet columns cleared for the others' selects).
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -1054,27 +1098,20 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes, bool e
     }
     alignas(64) int sampling[B];
     const int m = simd::select_indices(flag, count, 1, sampling);
-    // Their lane, wi, alpha, u2 (from a copy of the lane's stream: the emitter sample's two
-    // numbers skipped, then u1 and u2) and whether the sample is the plastic's diffuse base
-    // (1: no normal; the vector stage's choice of lobe). (Packed first: with AVX2, GCC does
-    // not vectorise the gathers of a listed lane's 64-bit stream.)
+    // Their lane, wi, alpha, u1 and u2 and whether the sample is the plastic's diffuse base
+    // (1: no normal; the vector stage's choice of lobe), packed first.
     alignas(64) int lane[B], mat[B];
-    alignas(64) uint64_t state[B], inc[B];
-    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B];
+    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B], u1s[B];
     for (int j = 0; j < m; ++j) {
         const int k = lanes[sampling[j]];
         lane[j] = k, mat[j] = b.mat[k];
         wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = flipped_wz[sampling[j]];
-        state[j] = b.state[k], inc[j] = b.inc[k];
-        if (emitter_sampling) pcg32_next(state[j], inc[j]), pcg32_next(state[j], inc[j]);
+        u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
     }
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
-        uint64_t s = state[j];
-        const float u1 = uniform_float(pcg32_next(s, inc[j]));
-        ux[j] = uniform_float(pcg32_next(s, inc[j]));
-        uy[j] = uniform_float(pcg32_next(s, inc[j]));
+        const float u1 = u1s[j];
         const float t_i = transmittance(tables, material.table, wz[j]);
         const float specular = u1 < specular_probability(material, t_i) ? 1.f : 0.f;
         alpha[j] = material.alpha;
@@ -1142,7 +1179,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes, bool e
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
-RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
+RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to, bool predrawn) {
     b.ox[to] = a.ox[from], b.oy[to] = a.oy[from], b.oz[to] = a.oz[from];
     b.dx[to] = a.dx[from], b.dy[to] = a.dy[from], b.dz[to] = a.dz[from];
     b.tmin[to] = a.tmin[from], b.tmax[to] = a.tmax[from];
@@ -1153,6 +1190,10 @@ RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
     b.prev_px[to] = a.prev_px[from], b.prev_py[to] = a.prev_py[from], b.prev_pz[to] = a.prev_pz[from];
     b.prev_delta[to] = a.prev_delta[from];
     b.state[to] = a.state[from], b.inc[to] = a.inc[from];
+    if (predrawn) {  // (the rest of a sampler other than `independent`)
+        b.sseq[to] = a.sseq[from], b.sindex[to] = a.sindex[from], b.sdim[to] = a.sdim[from];
+        b.saux0[to] = a.saux0[from], b.saux1[to] = a.saux1[from], b.saux2[to] = a.saux2[from];
+    }
     b.seq[to] = a.seq[from];
     b.depth[to] = a.depth[from];
 }
@@ -1170,13 +1211,12 @@ PathState<RGB<float>> load_path(const Batch &b, int k) {
     return path;
 }
 
-/// Store a ray and its path's stream into lane k.
+/// Store a ray and its path's sampler into lane k.
 void store_ray(Batch &b, int k, const Ray &ray, const Sampler &sampler) {
     b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
     b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
     b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-    b.state[k] = sampler.pcg_state();
-    b.inc[k] = sampler.pcg_inc();
+    store_sampler(b, k, sampler.parts());
 }
 
 /// Store a path state, its next ray and its stream into lane k.
@@ -1417,7 +1457,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // uniforms, Camera::perspective_ray; the others one sample at a time), at depth 0.
     int next = 0;
     auto start = [&](int first, int m) {
-        if (camera.type == CameraType::Perspective) {
+        if (camera.type == CameraType::Perspective && !ws.predrawn) {
             camera_stage(b, first, samples + next, m, camera, pos + next);
         } else {
             for (int i = 0; i < m; ++i) {
@@ -1540,7 +1580,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 // stage overwrites the lane, which gets it back after.
                 if (!si.valid) si = load_interaction(b, k, g);
                 PathState<RGB<float>> path = load_path(b, k);
-                Sampler sampler = Sampler::independent(b.state[k], b.inc[k]);
+                Sampler sampler = load_sampler(b, k, camera.sampler);
                 Ray ray;
                 side.alive[n_side] = path_vertex(ctx, cfg, b.depth[k], si, sampler, path, ray);
                 store_path(side, n_side, path, ray, sampler);
@@ -1588,7 +1628,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // Shade the other vertices in lanes (Beckmann's visible normals first); then the
         // vertices shaded aside return.
-        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane, cfg.emitter_sampling) : 0;
+        draw_stage(b, n, ws, cfg, camera.sampler);
+        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
@@ -1624,7 +1665,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         for (int i = 0; i < n_side; ++i) {
             const int k = side_lane[i];
-            move_lane(side, i, b, k);
+            move_lane(side, i, b, k, ws.predrawn);
             b.alive[k] = side.alive[i];
             b.shadow[k] = 0;
         }
@@ -1677,7 +1718,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 finish(k);
                 continue;
             }
-            if (live != k) move_lane(b, k, b, live);
+            if (live != k) move_lane(b, k, b, live, ws.predrawn);
             ++live;
         }
         if (!shadow_lanes) rays_traced += uint64_t(n_shadow);

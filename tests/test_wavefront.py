@@ -339,7 +339,7 @@ def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkey
     assert torch.equal(wavefront, scalar)
 
 
-@pytest.mark.parametrize("change", ["no triangles", "stratified", "direct", "float64"])
+@pytest.mark.parametrize("change", ["no triangles", "direct", "float64"])
 def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
     d = room_dict(tmp_path)
     if change == "environment":
@@ -348,8 +348,6 @@ def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change
         d = {k: v for k, v in d.items() if not isinstance(v, dict) or v.get("type") not in ("rectangle", "obj")}
         d["ball"] = {"type": "sphere", "bsdf": {"type": "diffuse"}}
         d["sky"] = {"type": "constant"}
-    elif change == "stratified":
-        d["sensor"]["sampler"] = {"type": "stratified"}
     elif change == "direct":  # (one sample of each, or of one alone, is path tracing's first vertex: lanes)
         d["integrator"] = {"type": "direct", "emitter_samples": 2}
     scene = tr.load_dict(d, dtype=torch.float64 if change == "float64" else torch.float32)
@@ -687,3 +685,41 @@ def test22_emitters_sampled_aside_at_every_path_setting(tmp_path, monkeypatch, i
     wavefront, scalar = render_both(tr.load_dict(d), monkeypatch, spp=9, seed=3)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
+
+
+@pytest.mark.parametrize("sampler", [{"type": "stratified"}, {"type": "stratified", "jitter": False},
+                                     {"type": "multijitter"}, {"type": "orthogonal"}, {"type": "ldsampler"}])
+@pytest.mark.parametrize("scene", ["every kind in lanes", "Beckmann shaded aside", "point light, direct"])
+def test23_other_samplers_draw_each_vertex_before_the_lanes(tmp_path, monkeypatch, sampler, scene):
+    # With a sampler other than `independent` the wavefront draws each vertex's numbers
+    # before its stages, one lane at a time by Sampler (draw_stage: the dimensions, the
+    # permutations and the jitter path_li's vertex would take), and the stages read them
+    # instead of their streams; the vertices shaded aside and emitters sampled aside continue
+    # the same sampler. The image is the scalar integrator's bit for bit, with diffuse,
+    # mirror, glass, GGX and Beckmann vertices, roulette from the second vertex on, sample
+    # counts the sampler rounds up (5 to 9, or to 16 for ldsampler), and `direct`.
+    if scene == "point light, direct":
+        d = room_dict(tmp_path, {"type": "direct"})
+        d["lamp"] = LAMP
+        d["plate"] = {"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.3, 0.4]).rotate([1, 0, 0], -60).scale(0.25),
+                      "bsdf": {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.2}}
+    else:
+        d = room_dict(tmp_path, {"max_depth": 6, "rr_depth": 2})
+        d["rough"] = {"type": "cube", "to_world": tr.Transform.translate([0.2, 0.2, 0]).scale(0.2),
+                      "bsdf": {"type": "roughconductor", "alpha": 0.3}}
+        d["plastic"] = {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, 0]),
+                        "bsdf": {"type": "roughplastic", "alpha": 0.2}}
+        d["glass"] = {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.4, 0.15, 0.4]),
+                      "bsdf": {"type": "dielectric"}}
+        d["satin"] = {"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([-0.2, 0.15, 0.5]),
+                      "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.4}}
+        if scene == "Beckmann shaded aside":  # (several lights, one a sphere, and delta BSDFs)
+            d["bulb"] = {"type": "sphere", "radius": 0.05, "to_world": tr.Transform.translate([0.0, 0.8, 0.3]),
+                         "emitter": {"type": "area", "radiance": 20.0}}
+    independent = tr.render(tr.load_dict(d), spp=5, seed=4)
+    d["sensor"]["sampler"] = dict(sampler)
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=5, seed=4)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    assert not torch.equal(scalar, independent)
