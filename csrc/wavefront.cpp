@@ -241,10 +241,8 @@ struct Batch {
     float eta[B], prev_pdf[B], prev_px[B], prev_py[B], prev_pz[B];
     int prev_delta[B];
     uint64_t state[B], inc[B];
-    // The rest of its sampler (Sampler::Parts) where it is not `independent`, and the
-    // numbers of this vertex, drawn before the stages that take them (draw_stage): the
+    // The numbers of this vertex, drawn before the stages that take them (draw_stage): the
     // emitter sample's two, the BSDF sample's three, the roulette's.
-    uint32_t sseq[B], sindex[B], sdim[B], saux0[B], saux1[B], saux2[B];
     float pe0[B], pe1[B], pb1[B], pb2x[B], pb2y[B], prr[B];
     int seq[B];    ///< the sample's index in the caller's arrays
     int depth[B];  ///< the path's vertex count so far (path_li's `depth`)
@@ -339,17 +337,18 @@ RBPT_INLINE float next_1d(Batch &b, int k, bool draw) {
     return u;
 }
 
-/// Store a sampler's state into lane k.
-RBPT_INLINE void store_sampler(Batch &b, int k, const Sampler::Parts &p) {
-    b.state[k] = p.state, b.inc[k] = p.inc;
-    b.sseq[k] = p.seq, b.sindex[k] = p.index, b.sdim[k] = p.dim;
-    b.saux0[k] = p.aux[0], b.saux1[k] = p.aux[1], b.saux2[k] = p.aux[2];
+/// Lane k's sampler: the independent sampler continuing its stream, or, with a sampler
+/// other than `independent` (WavefrontScene::predrawn), the sampler `desc` continuing from
+/// its sample's entry in `parts` (kept per sample, by the lane's seq, so that moving lanes
+/// moves no more than the stream).
+RBPT_INLINE Sampler load_sampler(const Batch &b, int k, const SamplerDesc &desc, const Sampler::Parts *parts) {
+    return parts ? Sampler(desc, parts[b.seq[k]]) : Sampler::independent(b.state[k], b.inc[k]);
 }
 
-/// Lane k's sampler `desc` (its stream alone for the independent sampler).
-RBPT_INLINE Sampler load_sampler(const Batch &b, int k, const SamplerDesc &desc) {
-    return Sampler(desc, Sampler::Parts{b.state[k], b.inc[k], b.sseq[k], b.sindex[k], b.sdim[k],
-                                        {b.saux0[k], b.saux1[k], b.saux2[k]}});
+/// Store lane k's sampler (after load_sampler()).
+RBPT_INLINE void store_sampler(Batch &b, int k, const Sampler &sampler, Sampler::Parts *parts) {
+    b.state[k] = sampler.pcg_state(), b.inc[k] = sampler.pcg_inc();
+    if (parts) parts[b.seq[k]] = sampler.parts();
 }
 
 // ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling and
@@ -883,7 +882,8 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 /// end), into the p* columns; the lanes' samplers move on. The independent sampler's in SIMD
 /// lanes from each lane's stream; the others' (WavefrontScene::predrawn) one lane at a time
 /// by Sampler, with its permutations and jitter.
-void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg, const SamplerDesc &desc) {
+void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg, const SamplerDesc &desc,
+                Sampler::Parts *parts) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float nee = cfg.emitter_sampling ? 1.f : 0.f;
     const int rr_depth = cfg.rr_depth;
@@ -905,7 +905,7 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
     for (int k = 0; k < n; ++k) {
         if (!b.shade[k]) continue;
         const WavefrontScene::Material &m = mats[b.mat[k]];
-        Sampler sampler = load_sampler(b, k, desc);
+        Sampler sampler = load_sampler(b, k, desc, parts);
         if ((m.diffuse + m.rough) * nee != 0.f) {
             const Vec2 u = sampler.next_2d();
             b.pe0[k] = u.x, b.pe1[k] = u.y;
@@ -914,7 +914,7 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
         const Vec2 u2 = sampler.next_2d();
         b.pb2x[k] = u2.x, b.pb2y[k] = u2.y;
         if (b.depth[k] + 1 >= rr_depth) b.prr[k] = sampler.next_1d();
-        store_sampler(b, k, sampler.parts());
+        store_sampler(b, k, sampler, parts);
     }
 }
 
@@ -1179,7 +1179,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
-RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to, bool predrawn) {
+RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
     b.ox[to] = a.ox[from], b.oy[to] = a.oy[from], b.oz[to] = a.oz[from];
     b.dx[to] = a.dx[from], b.dy[to] = a.dy[from], b.dz[to] = a.dz[from];
     b.tmin[to] = a.tmin[from], b.tmax[to] = a.tmax[from];
@@ -1190,10 +1190,6 @@ RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to, bool pred
     b.prev_px[to] = a.prev_px[from], b.prev_py[to] = a.prev_py[from], b.prev_pz[to] = a.prev_pz[from];
     b.prev_delta[to] = a.prev_delta[from];
     b.state[to] = a.state[from], b.inc[to] = a.inc[from];
-    if (predrawn) {  // (the rest of a sampler other than `independent`)
-        b.sseq[to] = a.sseq[from], b.sindex[to] = a.sindex[from], b.sdim[to] = a.sdim[from];
-        b.saux0[to] = a.saux0[from], b.saux1[to] = a.saux1[from], b.saux2[to] = a.saux2[from];
-    }
     b.seq[to] = a.seq[from];
     b.depth[to] = a.depth[from];
 }
@@ -1211,12 +1207,13 @@ PathState<RGB<float>> load_path(const Batch &b, int k) {
     return path;
 }
 
-/// Store a ray and its path's sampler into lane k.
+/// Store a ray and its path's stream into lane k.
 void store_ray(Batch &b, int k, const Ray &ray, const Sampler &sampler) {
     b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
     b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
     b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-    store_sampler(b, k, sampler.parts());
+    b.state[k] = sampler.pcg_state();
+    b.inc[k] = sampler.pcg_inc();
 }
 
 /// Store a path state, its next ray and its stream into lane k.
@@ -1440,6 +1437,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     static thread_local Batch batch_storage, side_storage;
     static thread_local int side_lane_storage[B], beckmann_lane_storage[B];
     Batch &b = batch_storage, &side = side_storage;
+    // The samplers other than `independent` of samples [0, n_samples), beyond their streams
+    // (see load_sampler()).
+    static thread_local std::vector<Sampler::Parts> parts_storage;
+    if (ws.predrawn && parts_storage.size() < size_t(n_samples)) parts_storage.resize(size_t(n_samples));
+    Sampler::Parts *const parts = ws.predrawn ? parts_storage.data() : nullptr;
     int *const side_lane = side_lane_storage, *const beckmann_lane = beckmann_lane_storage;
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
@@ -1466,6 +1468,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 Sampler sampler(camera.sampler, s.seed, uint64_t(s.s));
                 pos[next + i] = camera.sample_position(s.px, s.py, sampler);
                 store_ray(b, k, camera.sample_ray(pos[next + i], sampler), sampler);
+                if (parts) parts[next + i] = sampler.parts();
             }
         }
         for (int k = first; k < first + m; ++k) {
@@ -1580,10 +1583,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 // stage overwrites the lane, which gets it back after.
                 if (!si.valid) si = load_interaction(b, k, g);
                 PathState<RGB<float>> path = load_path(b, k);
-                Sampler sampler = load_sampler(b, k, camera.sampler);
+                Sampler sampler = load_sampler(b, k, camera.sampler, parts);
                 Ray ray;
                 side.alive[n_side] = path_vertex(ctx, cfg, b.depth[k], si, sampler, path, ray);
                 store_path(side, n_side, path, ray, sampler);
+                if (parts) parts[b.seq[k]] = sampler.parts();
                 side.seq[n_side] = b.seq[k];
                 side.depth[n_side] = b.depth[k];
                 side_lane[n_side++] = k;
@@ -1628,7 +1632,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // Shade the other vertices in lanes (Beckmann's visible normals first); then the
         // vertices shaded aside return.
-        draw_stage(b, n, ws, cfg, camera.sampler);
+        draw_stage(b, n, ws, cfg, camera.sampler, parts);
         const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
@@ -1665,7 +1669,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         for (int i = 0; i < n_side; ++i) {
             const int k = side_lane[i];
-            move_lane(side, i, b, k, ws.predrawn);
+            move_lane(side, i, b, k);
             b.alive[k] = side.alive[i];
             b.shadow[k] = 0;
         }
@@ -1718,7 +1722,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 finish(k);
                 continue;
             }
-            if (live != k) move_lane(b, k, b, live, ws.predrawn);
+            if (live != k) move_lane(b, k, b, live);
             ++live;
         }
         if (!shadow_lanes) rays_traced += uint64_t(n_shadow);
