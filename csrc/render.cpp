@@ -732,9 +732,6 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             RGB<float> Le = Params<RGB<float>>::value_of(values.data[size_t(e.radiance)], values.numel[size_t(e.radiance)]);
             lanes = lanes && Le[0] != 0.f && Le[1] != 0.f && Le[2] != 0.f;
         }
-        // (Its film positions in lanes are the independent sampler's: the other samplers'
-        // gradients come from the tape.)
-        lanes = lanes && camera.sampler.type == SamplerType::Independent;
         if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
         // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
         // path that reaches them.)
@@ -855,8 +852,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // bitwise reproducible for a given number of workers, and each tile's paths are
         // shared among the workers (whose loads stay even when some tiles cost more).
         // (The pixels' seeds are kept per tile: a worker's units run through a tile's samples.
-        // In lanes, which take the independent sampler, the unit's positions are drawn in
-        // SIMD lanes first.)
+        // In lanes the unit's positions are drawn first: the independent sampler's in SIMD
+        // lanes, the others' one pixel at a time by Sampler.)
         int64_t n_units = int64_t(n_tiles) * req.spp;
         std::vector<PixelSeed> tile_seeds;
         std::vector<uint64_t> tile_streams, tile_index;
@@ -874,10 +871,15 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 tile_index.resize(tile_seeds.size()), tile_u0.resize(tile_seeds.size()), tile_u1.resize(tile_seeds.size());
                 seeds_of = tile;
             }
-            if (lanes_ctx) {
+            if (lanes_ctx && independent) {
                 std::fill(tile_index.begin(), tile_index.end(), uint64_t(s));
                 independent_first_2d(int(tile_seeds.size()), tile_streams.data(), tile_index.data(), tile_u0.data(),
                                      tile_u1.data());
+            }
+            for (size_t i = 0; lanes_ctx && !independent && i < tile_seeds.size(); ++i) {
+                Sampler sampler(camera.sampler, tile_seeds[i], uint64_t(s));
+                const Vec2 u = sampler.next_2d();  // (Camera::sample_position's)
+                tile_u0[i] = u.x, tile_u1[i] = u.y;
             }
             // Their filter weights at once, where the tile's pixels fit a batch (they do but
             // under filters wider than 8 pixels, whose tiles are larger).

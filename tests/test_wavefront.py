@@ -723,3 +723,18 @@ def test23_other_samplers_draw_each_vertex_before_the_lanes(tmp_path, monkeypatc
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
     assert not torch.equal(scalar, independent)
+
+
+@pytest.mark.parametrize("sampler", [{"type": "stratified"}, {"type": "multijitter"}, {"type": "orthogonal"},
+                                     {"type": "ldsampler"}])
+def test24_backward_in_lanes_with_other_samplers(tmp_path, monkeypatch, sampler):
+    # The backward pass traces its paths in lanes with any sampler: the film positions of a
+    # sample index are drawn by Sampler for the whole tile first (the independent sampler's
+    # in SIMD lanes), the paths start from them, and the gradients are the tape's on the
+    # same paths. (9 samples per pixel: a square, rows x columns and a prime squared; the
+    # ldsampler rounds them to 16.)
+    d = room_dict(tmp_path, {"max_depth": 4})
+    d["sensor"]["sampler"] = dict(sampler)
+    spp = 16 if sampler["type"] == "ldsampler" else 9
+    assert_lanes_give_the_tapes_gradients(tr.load_dict(d), ["floor.bsdf.reflectance.value", "quad.emitter.radiance.value"],
+                                          monkeypatch, spp=spp)
