@@ -246,8 +246,8 @@ public:
     }
 
     /// What a sampler of any kind continues from besides its SamplerDesc: its stream, and
-    /// the stratified kinds' pixel seed, sample index, dimension and row or scrambles (paths
-    /// traced in SIMD lanes keep them as columns, wavefront.h).
+    /// the stratified kinds' pixel seed, sample index, dimension and row or scrambles (the
+    /// wavefront keeps them per sample between its stages: wavefront.cpp's load_sampler).
     struct Parts {
         uint64_t state, inc;
         uint32_t seq, index, dim, aux[3];
