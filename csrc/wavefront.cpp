@@ -523,7 +523,7 @@ struct LightTriangles {
 /// two triangles each). Selects instead of the products made GCC load under their condition
 /// (masked loads of one address, which it does not vectorise), and in vertex_stage's own
 /// loop they stopped the vectoriser in other instances.
-template <bool Delta, int Tris>
+template <int Tris>
 __attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
     const float *cdf = ws.cdf.data();  // (the first light's entries)
     const LightTriangles tris(ws);
@@ -590,8 +590,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     if constexpr (OneLight) {
         // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
         // from its fourth entry on.)
-        if (ws.cdf[3] > 1.f) light_point_stage<Delta, 2>(b, n, ws);
-        else light_point_stage<Delta, 8>(b, n, ws);
+        if (ws.cdf[3] > 1.f) light_point_stage<2>(b, n, ws);
+        else light_point_stage<8>(b, n, ws);
     }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -1064,11 +1064,10 @@ struct BeckmannSearches {
 
 /// The visible normals of the Beckmann lanes' BSDF samples, before the vector stage, and
 /// the microfacet terms towards the sampled direction: from the BSDF sample's numbers
-/// (draw_stage's), in the frame the vector stage samples
-/// in (twosided's flip), with a normal where the sample takes one (a conductor's; a
-/// roughplastic's where u1 picks the specular lobe). The random numbers come from a copy of
-/// each lane's stream, one lane at a time; the rest runs in SIMD lanes over the listed lanes
-/// (BeckmannSlopes' operations, so the normals are VisibleNormalSampler's bit for bit): the
+/// (draw_stage's), in the frame the vector stage samples in (twosided's flip), with a normal
+/// where the sample takes one (a conductor's; a roughplastic's where u1 picks the specular
+/// lobe). The lanes are listed and packed one at a time; the rest runs in SIMD lanes over
+/// them (BeckmannSlopes' operations, so the normals are VisibleNormalSampler's bit for bit): the
 /// Newton search a step per pass while any lane's continues (most converge in two), its
 /// rare long tails one lane at a time. Lists the Beckmann lanes in `lanes` and returns their
 /// number.

@@ -25,8 +25,9 @@
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
-// kind or of one kind alone, as path_settings() makes it), with any sampler (the others than
-// `independent` draw each vertex's numbers before the vector stage: WavefrontScene::predrawn),
+// kind or of one kind alone, as path_settings() makes it), with any sampler (each vertex's
+// numbers are drawn in one stage before the others, by Sampler one lane at a time for the
+// samplers other than `independent`: WavefrontScene::predrawn),
 // when the scene has a triangle and some BSDF is one of those; other scenes, and the autodiff number types, take
 // path_li. render_bwd also traces its paths with
 // it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX
@@ -115,9 +116,9 @@ struct WavefrontScene {
     bool any_sphere_lights = false;   ///< whether some are spheres
     bool any_mesh_lights = false;     ///< whether some are meshes
     bool any_aside_lights = false;    ///< whether some are sampled aside (Light::aside)
-    /// Whether the sampler is not `independent`: then each vertex's numbers are drawn before
-    /// the vector stage, one lane at a time by Sampler (its permutations and jitter), and the
-    /// stages read them from columns instead of drawing from their lanes' streams.
+    /// Whether the sampler is not `independent`: then draw_stage draws each vertex's numbers
+    /// one lane at a time by Sampler (its permutations and jitter), where it draws the
+    /// independent sampler's in lanes; the other stages read them from columns either way.
     bool predrawn = false;
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t. (The
