@@ -2,6 +2,7 @@
 
 #include <cstdlib>
 #include <cstring>
+#include <memory>
 #include <type_traits>
 
 namespace rbpt {
@@ -1430,18 +1431,24 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     ParamReadLog *log = record ? ctx.params.log : nullptr;
     if (record) record->tape.assign(size_t(n_samples), 0), record->vertices.clear();
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
-    // each: no stack frame of their own).
-    // (Bound once: each access of a thread_local in a shared library calls __tls_get_addr,
-    // 1-1.5% of a cbox render when the loop and its lambdas named them directly.)
-    static thread_local Batch batch_storage, side_storage;
-    static thread_local int side_lane_storage[B], beckmann_lane_storage[B];
-    Batch &b = batch_storage, &side = side_storage;
-    // The samplers other than `independent` of samples [0, n_samples), beyond their streams
-    // (see load_sampler()).
-    static thread_local std::vector<Sampler::Parts> parts_storage;
-    if (ws.predrawn && parts_storage.size() < size_t(n_samples)) parts_storage.resize(size_t(n_samples));
-    Sampler::Parts *const parts = ws.predrawn ? parts_storage.data() : nullptr;
-    int *const side_lane = side_lane_storage, *const beckmann_lane = beckmann_lane_storage;
+    // each: no stack frame of their own), in a buffer of the thread's, reached through one
+    // pointer read here. (Bound to thread_locals directly, the stages that take the batch
+    // were specialised to its address, and GCC recomputed that with a call of __tls_get_addr
+    // after every call they make: 46 such calls in this function, 28 in beckmann_stage.)
+    struct Buffers {
+        Batch batch, side;
+        int side_lane[B], beckmann_lane[B];
+        /// The samplers other than `independent` of samples [0, n_samples), beyond their
+        /// streams (see load_sampler()).
+        std::vector<Sampler::Parts> parts;
+    };
+    static thread_local std::unique_ptr<Buffers> buffers_storage;
+    if (!buffers_storage) buffers_storage = std::make_unique<Buffers>();
+    Buffers &buffers = *buffers_storage;
+    Batch &b = buffers.batch, &side = buffers.side;
+    if (ws.predrawn && buffers.parts.size() < size_t(n_samples)) buffers.parts.resize(size_t(n_samples));
+    Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
+    int *const side_lane = buffers.side_lane, *const beckmann_lane = buffers.beckmann_lane;
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
