@@ -233,7 +233,8 @@ namespace {
 constexpr int B = WavefrontBatch;
 
 /// The batch's paths, one column per quantity; live paths are packed into [0, n).
-struct Batch {
+/// (Aligned to cache lines: so is each column, 256 entries, and so are the vector loads.)
+struct alignas(64) Batch {
     // The ray to trace next.
     float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B];
     // The path: radiance, throughput, roulette throughput, the last BSDF sample's density and
@@ -1194,6 +1195,59 @@ RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
     b.depth[to] = a.depth[from];
 }
 
+/// Move the lanes of [0, n) whose path goes on (`alive`) to the front, in order: what the
+/// next bounce reads, as move_lane() copies it. Returns their number. With AVX-512, sixteen
+/// lanes of a column at a time, compressed in a register (in place: the lanes stored go no
+/// further than the sixteen just loaded); else one lane at a time.
+int compact_lanes(Batch &b, int n) {
+#if defined(__AVX512F__)
+    uint32_t *const words[] = {
+        reinterpret_cast<uint32_t *>(b.ox), reinterpret_cast<uint32_t *>(b.oy), reinterpret_cast<uint32_t *>(b.oz),
+        reinterpret_cast<uint32_t *>(b.dx), reinterpret_cast<uint32_t *>(b.dy), reinterpret_cast<uint32_t *>(b.dz),
+        reinterpret_cast<uint32_t *>(b.tmin), reinterpret_cast<uint32_t *>(b.tmax),
+        reinterpret_cast<uint32_t *>(b.Lr), reinterpret_cast<uint32_t *>(b.Lg), reinterpret_cast<uint32_t *>(b.Lb),
+        reinterpret_cast<uint32_t *>(b.br), reinterpret_cast<uint32_t *>(b.bg), reinterpret_cast<uint32_t *>(b.bb),
+        reinterpret_cast<uint32_t *>(b.rr_r), reinterpret_cast<uint32_t *>(b.rr_g), reinterpret_cast<uint32_t *>(b.rr_b),
+        reinterpret_cast<uint32_t *>(b.eta), reinterpret_cast<uint32_t *>(b.prev_pdf),
+        reinterpret_cast<uint32_t *>(b.prev_px), reinterpret_cast<uint32_t *>(b.prev_py), reinterpret_cast<uint32_t *>(b.prev_pz),
+        reinterpret_cast<uint32_t *>(b.prev_delta), reinterpret_cast<uint32_t *>(b.seq), reinterpret_cast<uint32_t *>(b.depth)};
+    uint64_t *const doubles[] = {b.state, b.inc};
+    int live = 0;
+    for (int k = 0; k < n; k += 16) {
+        const __mmask16 in = __mmask16(n - k >= 16 ? 0xffffu : (1u << (n - k)) - 1u);
+        const __mmask16 alive = _mm512_mask_cmpneq_epi32_mask(in, _mm512_load_si512(b.alive + k), _mm512_setzero_si512());
+        if (alive == 0xffffu && live == k) {
+            live += 16;  // (a full run in place)
+            continue;
+        }
+        const int count = __builtin_popcount(alive);
+        const __mmask16 out = __mmask16((1u << count) - 1u);
+        for (uint32_t *w : words) {
+            _mm512_mask_storeu_epi32(w + live, out, _mm512_maskz_compress_epi32(alive, _mm512_load_si512(w + k)));
+        }
+        const __mmask8 lo = __mmask8(alive & 0xffu), hi = __mmask8(alive >> 8);
+        const int count_lo = __builtin_popcount(lo);
+        for (uint64_t *d : doubles) {
+            // (Both halves loaded before either is stored: the first's store may reach the second.)
+            const __m512i a = _mm512_maskz_compress_epi64(lo, _mm512_load_si512(d + k));
+            const __m512i c = _mm512_maskz_compress_epi64(hi, _mm512_load_si512(d + k + 8));
+            _mm512_mask_storeu_epi64(d + live, __mmask8((1u << count_lo) - 1u), a);
+            _mm512_mask_storeu_epi64(d + live + count_lo, __mmask8((1u << (count - count_lo)) - 1u), c);
+        }
+        live += count;
+    }
+    return live;
+#else
+    int live = 0;
+    for (int k = 0; k < n; ++k) {
+        if (!b.alive[k]) continue;
+        if (live != k) move_lane(b, k, b, live);
+        ++live;
+    }
+    return live;
+#endif
+}
+
 /// Lane k's path state, as path_li holds it.
 PathState<RGB<float>> load_path(const Batch &b, int k) {
     PathState<RGB<float>> path;
@@ -1696,41 +1750,50 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             // (The lanes without a shadow ray get masks that are not read.)
             sbvh.root_masks({b.sox, b.soy, b.soz, b.sdx, b.sdy, b.sdz, shadow_tmin, b.stmax}, n, root_mask);
         }
-        int live = 0, n_shadow = 0;
+        // The shadow rays' tests one at a time where the lanes did not take them; `lit`: 1
+        // where the emitter sample's contribution is added.
+        alignas(64) int lit[B];
+        int n_shadow = 0;
         for (int k = 0; k < n; ++k) {
-            if (b.shadow[k]) {
-                Ray ray;
-                ray.o = {b.sox[k], b.soy[k], b.soz[k]};
-                ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
-                ray.tmax = b.stmax[k];
-                ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
-                const bool blocked = shadow_lanes ? false
-                                     : shadow_masks ? sbvh.occluded_children(ray, root_mask[k])
-                                                    : sbvh.occluded(ray);
-                if (!blocked) {
-                    b.Lr[k] += b.cr[k], b.Lg[k] += b.cg[k], b.Lb[k] += b.cb[k];
-                    const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
-                    if (log && b.record_rough[k] >= 0) {
-                        float *C = record->vertices[size_t(b.record_rough[k])].value;
-                        C[0] = b.cr[k], C[1] = b.cg[k], C[2] = b.cb[k];
-                    }
-                    if (log && log->watched[light.radiance_param]) {
-                        // The emitter sample's contribution, for render_bwd's deposit.
-                        ParamRead read;
-                        read.param = light.radiance_param, read.n = 1, read.weight[0] = 1.f;
-                        read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
-                        const Color3f &Le = light.radiance;
-                        record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
-                    }
-                }
-            }
-            if (!b.alive[k]) {
-                finish(k);
-                continue;
-            }
-            if (live != k) move_lane(b, k, b, live);
-            ++live;
+            lit[k] = b.shadow[k] != 0 ? 1 : 0;
+            if (shadow_lanes || !lit[k]) continue;
+            Ray ray;
+            ray.o = {b.sox[k], b.soy[k], b.soz[k]};
+            ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
+            ray.tmax = b.stmax[k];
+            ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
+            const bool blocked = shadow_masks ? sbvh.occluded_children(ray, root_mask[k]) : sbvh.occluded(ray);
+            lit[k] = blocked ? 0 : 1;
         }
+        // Their contributions, in lanes.
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            b.Lr[k] = lit[k] != 0 ? b.Lr[k] + b.cr[k] : b.Lr[k];
+            b.Lg[k] = lit[k] != 0 ? b.Lg[k] + b.cg[k] : b.Lg[k];
+            b.Lb[k] = lit[k] != 0 ? b.Lb[k] + b.cb[k] : b.Lb[k];
+        }
+        for (int k = 0; log && k < n; ++k) {
+            if (!lit[k]) continue;
+            const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
+            if (b.record_rough[k] >= 0) {
+                float *C = record->vertices[size_t(b.record_rough[k])].value;
+                C[0] = b.cr[k], C[1] = b.cg[k], C[2] = b.cb[k];
+            }
+            if (log->watched[light.radiance_param]) {
+                // The emitter sample's contribution, for render_bwd's deposit.
+                ParamRead read;
+                read.param = light.radiance_param, read.n = 1, read.weight[0] = 1.f;
+                read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
+                const Color3f &Le = light.radiance;
+                record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
+            }
+        }
+        // The paths that ended hand back their radiance; the others move to the front, in
+        // lanes (compact_lanes).
+        for (int k = 0; k < n; ++k) {
+            if (!b.alive[k]) finish(k);
+        }
+        const int live = compact_lanes(b, n);
         if (!shadow_lanes) rays_traced += uint64_t(n_shadow);
         // The paths that go on take their next vertex; the next samples start in the lanes
         // freed (or in the whole batch, once drained, without refill).
