@@ -1596,7 +1596,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // parameter log or whose log's watched inputs exclude_watched_inputs() left out.)
         const bool quick = !log || log->watched == ws.quick_watched;
         if (quick) quick_shade_stage(b, n, ws);
+        // The lanes this loop visits (listed in lanes: a branch per lane mispredicts): those
+        // at their last vertex among others that go on, and those the quick stage left.
+        alignas(64) int visit[B], visit_lanes[B];
+        const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0;
+#pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
+            const int last = cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth ? any_last : 0;
+            const int set_up = b.shade[k] != 0 ? quick_set : 0;
+            visit[k] = last != 0 || set_up == 0 ? 1 : 0;
+        }
+        const int n_visit = simd::select_indices(visit, n, 1, visit_lanes);
+        for (int j = 0; j < n_visit; ++j) {
+            const int k = visit_lanes[j];
             if (n_last > 0 && is_last(k)) {
                 // A path at its last vertex (among others that go on): its emission, and the
                 // vector stage ends it (shade 0).
@@ -1752,16 +1764,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // The shadow rays' tests one at a time where the lanes did not take them; `lit`: 1
         // where the emitter sample's contribution is added.
-        alignas(64) int lit[B];
-        int n_shadow = 0;
-        for (int k = 0; k < n; ++k) {
-            lit[k] = b.shadow[k] != 0 ? 1 : 0;
-            if (shadow_lanes || !lit[k]) continue;
+        alignas(64) int lit[B], shadow_lanes_list[B];
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) lit[k] = b.shadow[k] != 0 ? 1 : 0;
+        const int n_shadow = shadow_lanes ? 0 : simd::select_indices(lit, n, 1, shadow_lanes_list);
+        for (int j = 0; j < n_shadow; ++j) {
+            const int k = shadow_lanes_list[j];
             Ray ray;
             ray.o = {b.sox[k], b.soy[k], b.soz[k]};
             ray.d = {b.sdx[k], b.sdy[k], b.sdz[k]};
             ray.tmax = b.stmax[k];
-            ++n_shadow;  // (counted here: Scene::occluded's count is a thread_local's)
             const bool blocked = shadow_masks ? sbvh.occluded_children(ray, root_mask[k]) : sbvh.occluded(ray);
             lit[k] = blocked ? 0 : 1;
         }
@@ -1790,11 +1802,13 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // The paths that ended hand back their radiance; the others move to the front, in
         // lanes (compact_lanes).
-        for (int k = 0; k < n; ++k) {
-            if (!b.alive[k]) finish(k);
-        }
+        alignas(64) int ended[B];
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) visit[k] = b.alive[k] != 0 ? 0 : 1;
+        const int n_ended = simd::select_indices(visit, n, 1, ended);
+        for (int j = 0; j < n_ended; ++j) finish(ended[j]);
         const int live = compact_lanes(b, n);
-        if (!shadow_lanes) rays_traced += uint64_t(n_shadow);
+        rays_traced += uint64_t(n_shadow);  // (Scene::occluded's count is a thread_local's)
         // The paths that go on take their next vertex; the next samples start in the lanes
         // freed (or in the whole batch, once drained, without refill).
         for (int k = 0; k < live; ++k) ++b.depth[k];
