@@ -148,7 +148,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         const Shape &shape = geometry.shapes[geometry.shape_of(p)];
         ws.prim_material.push_back(shape.bsdf);
         ws.prim_quick.push_back(shape.emitter < 0 && quick[size_t(shape.bsdf)]);
+        ws.prim_emits.push_back(shape.emitter >= 0 ? 1 : 0);
     }
+    ws.prim_emits.push_back(scene.environment >= 0 ? 1 : 0);
     for (const Triangle &tri : scene.geometry.triangles) {
         using F = WavefrontScene::ShapeFlag;
         const Shape &shape = scene.geometry.shapes[tri.shape];
@@ -1577,11 +1579,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         int n_last = 0;
         for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
         if (n_last == n) {
-            // Every path at its last vertex: they end here.
-            for (int k = 0; k < n; ++k) {
-                last_vertex(k);
-                finish(k);
-            }
+            // Every path at its last vertex: they end here, with the emission of those whose
+            // ray found an emitter (listed in lanes).
+            alignas(64) int emits[B], emitting[B];
+            const int *prim_emits = ws.prim_emits.data();
+            const uint32_t escaped = uint32_t(ws.prim_emits.size()) - 1;
+#pragma GCC ivdep
+            for (int k = 0; k < n; ++k) emits[k] = prim_emits[std::min(b.prim[k], escaped)];
+            const int n_emitting = simd::select_indices(emits, n, 1, emitting);
+            for (int j = 0; j < n_emitting; ++j) last_vertex(emitting[j]);
+            for (int k = 0; k < n; ++k) finish(k);
             n = std::min(n_samples - next, B);
             start(0, n);
             continue;

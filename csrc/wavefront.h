@@ -91,6 +91,9 @@ struct WavefrontScene {
     /// stage's work for it is a constant lookup (1: a BSDF of the vector stage whose inputs are
     /// constants, Material::a and t, on a shape that does not emit; else 0).
     std::vector<int> prim_material, prim_quick;
+    /// Per primitive, then one entry more for a ray that escaped: 1 where the ray finds an
+    /// emitter there (the shape's, or the environment), else 0.
+    std::vector<int> prim_emits;
     /// The parameters (per parameter, nonzero where marked) whose materials
     /// exclude_watched_inputs() took out of prim_quick, for renders logging their reads.
     const char *quick_watched = nullptr;
