@@ -1176,10 +1176,14 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
     if (two_phase_) {
         // The rest of the tree, beyond the root's leaves, for the rays that enter one of its
         // inner children's boxes before their nearest hit so far.
-        alignas(64) int enters[MaxColumns];
+        // (Listed first: a branch per ray mispredicts.)
+        alignas(64) int enters[MaxColumns], go[MaxColumns], list[MaxColumns];
         enters_inner(r, n, hits.t, enters);
-        for (int k = 0; k < n; ++k) {
-            if (retrace[k] != 0.f || !enters[k]) continue;
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) go[k] = retrace[k] == 0.f && enters[k] != 0 ? 1 : 0;
+        const int m = simd::select_indices(go, n, 1, list);
+        for (int j = 0; j < m; ++j) {
+            const int k = list[j];
             Ray ray = r.ray(k);
             ray.tmax = std::min(ray.tmax, hits.t[k]);
             Hit h;
@@ -1187,9 +1191,11 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
         }
     }
     // The rays to retrace, traced.
-    for (int k = 0; k < n; ++k) {
-        if (retrace[k] != 0.f) trace(k);
-    }
+    alignas(64) int again[MaxColumns], list[MaxColumns];
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) again[k] = retrace[k] != 0.f ? 1 : 0;
+    const int m = simd::select_indices(again, n, 1, list);
+    for (int j = 0; j < m; ++j) trace(list[j]);
 }
 
 void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
@@ -1201,12 +1207,20 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
         alignas(64) int enters[MaxColumns];
         flat_columns(r, n, {t, u, v, prim}, retrace);
         enters_inner(r, n, r.tmax, enters);
+        // Blocked by a root leaf in lanes; the rays to retrace, or that enter an inner child
+        // unblocked, listed and traced.
+        alignas(64) int rest[MaxColumns], list[MaxColumns];
+#pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
+            const int hit = prim[k] != ~0u ? 1 : 0;
+            blocked[k] = retrace[k] != 0.f ? 0 : hit;
+            rest[k] = retrace[k] != 0.f || (hit == 0 && enters[k] != 0) ? 1 : 0;
+        }
+        const int m = simd::select_indices(rest, n, 1, list);
+        for (int j = 0; j < m; ++j) {
+            const int k = list[j];
             Hit unused;
-            blocked[k] = retrace[k] != 0.f ? occluded(r.ray(k))
-                         : prim[k] != ~0u  ? 1
-                         : enters[k]       ? traverse<true, true>(r.ray(k), &unused, first_node(enters[k]))
-                                           : 0;
+            blocked[k] = retrace[k] != 0.f ? occluded(r.ray(k)) : traverse<true, true>(r.ray(k), &unused, first_node(enters[k]));
         }
         return;
     }
