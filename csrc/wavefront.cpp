@@ -1181,7 +1181,8 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     return count;
 }
 
-/// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`.
+/// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`. (compact_lanes()
+/// moves the same columns: a column added here goes there too.)
 RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
     b.ox[to] = a.ox[from], b.oy[to] = a.oy[from], b.oz[to] = a.oz[from];
     b.dx[to] = a.dx[from], b.dy[to] = a.dy[from], b.dz[to] = a.dz[from];
