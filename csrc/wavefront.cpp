@@ -1810,10 +1810,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // The paths that ended hand back their radiance; the others move to the front, in
         // lanes (compact_lanes).
-        alignas(64) int ended[B];
+        alignas(64) int dead[B], ended[B];
 #pragma GCC ivdep
-        for (int k = 0; k < n; ++k) visit[k] = b.alive[k] != 0 ? 0 : 1;
-        const int n_ended = simd::select_indices(visit, n, 1, ended);
+        for (int k = 0; k < n; ++k) dead[k] = b.alive[k] != 0 ? 0 : 1;
+        const int n_ended = simd::select_indices(dead, n, 1, ended);
         for (int j = 0; j < n_ended; ++j) finish(ended[j]);
         const int live = compact_lanes(b, n);
         rays_traced += uint64_t(n_shadow);  // (Scene::occluded's count is a thread_local's)
