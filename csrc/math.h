@@ -70,6 +70,46 @@ RBPT_INLINE float exp_poly(float x) {
     return p * scale;
 }
 
+/// atan(y / x) in the quadrant of (x, y), as std::atan2 (to 2e-7 rad; atan2(0, 0) is 0),
+/// without libm, so that vectorised loops can call it: Cephes' atanf (its argument reduced
+/// to [0, tan(pi/8)] by the identities at pi/4 and pi/2, then a polynomial of degree 9).
+RBPT_INLINE float atan2_poly(float y, float x) {
+    float ax = std::abs(x), ay = std::abs(y);
+    float a = std::max(ax, ay), b = std::min(ax, ay);
+    float t = a > 0.f ? b / a : 0.f;  // in [0, 1]: atan(t), then pi/2 - it where |y| > |x|
+    float above = t > 0.41421356f ? 1.f : 0.f;
+    float base = above != 0.f ? 0.78539816f : 0.f;
+    t = above != 0.f ? (t - 1.f) / (t + 1.f) : t;
+    float z = t * t;
+    float p = 8.05374449538e-2f;
+    p = p * z - 1.38776856032e-1f;
+    p = p * z + 1.99777106478e-1f;
+    p = p * z - 3.33329491539e-1f;
+    float r = base + ((p * z) * t + t);
+    r = ay > ax ? 1.57079633f - r : r;
+    r = x < 0.f ? 3.14159265f - r : r;
+    return std::copysign(r, y);
+}
+
+/// acos(x) for x in [0, 1] (Abramowitz and Stegun 4.4.46: absolute error below 2e-8).
+RBPT_INLINE float acos_poly(float x) {
+    float p = -0.0012624911f;
+    p = p * x + 0.0066700901f;
+    p = p * x - 0.0170881256f;
+    p = p * x + 0.0308918810f;
+    p = p * x - 0.0501743046f;
+    p = p * x + 0.0889789874f;
+    p = p * x - 0.2145988016f;
+    p = p * x + 1.5707963050f;
+    return std::sqrt(std::max(0.f, 1.f - x)) * p;
+}
+
+/// acos(x) for x in [-1, 1] (x clamped to it), from acos_poly (acos(-x) = pi - acos(x)).
+RBPT_INLINE float acos_full(float x) {
+    float r = acos_poly(std::min(std::abs(x), 1.f));
+    return x < 0.f ? 3.14159265f - r : r;
+}
+
 /// log(x) for a normal, finite float x > 0, without libm, so that vectorised loops can call
 /// it: x = m 2^e with m in [sqrt(1/2), sqrt(2)), and log(m) from Cephes' logf polynomial in
 /// m - 1 (within 2 ulps of libm's, tests/cpp test13); ln2 in two parts.

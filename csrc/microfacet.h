@@ -143,19 +143,6 @@ RBPT_INLINE float erfinv(float x) {
     return x >= 1.f ? std::numeric_limits<float>::infinity() : r;
 }
 
-/// acos(x) for x in [0, 1] (Abramowitz and Stegun 4.4.46: absolute error below 2e-8).
-RBPT_INLINE float acos_poly(float x) {
-    float p = -0.0012624911f;
-    p = p * x + 0.0066700901f;
-    p = p * x - 0.0170881256f;
-    p = p * x + 0.0308918810f;
-    p = p * x - 0.0501743046f;
-    p = p * x + 0.0889789874f;
-    p = p * x - 0.2145988016f;
-    p = p * x + 1.5707963050f;
-    return std::sqrt(std::max(0.f, 1.f - x)) * p;
-}
-
 /// The slopes of Beckmann's microfacet normals visible from direction w (wi stretched to the
 /// alpha = 1 configuration, w.z > 0; Jakob 2014), rotated to w's azimuth: at (near) normal
 /// incidence polar (radius from u.x, angle from u.y), else by inverting the CDF of the x

@@ -129,9 +129,11 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
         if (shape.needs_uv || all_uv) {
             // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
             Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};
-            float phi = std::atan2(q.y, q.x);
-            if (phi < 0.f) phi += 2.f * Pi;
-            si.uv = {phi * InvTwoPi, std::acos(std::clamp(q.z, -1.f, 1.f)) * InvPi};
+            // (atan2_poly and acos_full, not libm's: the wavefront's interaction stage computes
+            // the same in SIMD lanes.)
+            float phi = atan2_poly(q.y, q.x);
+            phi = phi < 0.f ? phi + 2.f * Pi : phi;
+            si.uv = {phi * InvTwoPi, acos_full(q.z) * InvPi};
         }
         if (shape.flip_normals) si.n = -si.n;
         ns = si.n;

@@ -161,16 +161,20 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     }
     for (uint32_t s : scene.geometry.analytic) {
         const Shape &shape = scene.geometry.shapes[s];
-        bool lanes = shape.kind == ShapeKind::Sphere && !shape.needs_uv;
+        bool lanes = shape.kind == ShapeKind::Sphere;
         ws.any_spheres = ws.any_spheres || lanes;
+        ws.any_sphere_uv = ws.any_sphere_uv || (lanes && shape.needs_uv);
         ws.sphere_lanes.push_back(lanes);
+        ws.sphere_uv.push_back(lanes && shape.needs_uv ? 1.f : 0.f);
         ws.sphere_center.push_back(shape.center);
+        ws.sphere_x.push_back(shape.local_x), ws.sphere_y.push_back(shape.local_y), ws.sphere_z.push_back(shape.local_z);
         ws.sphere_radius.push_back(shape.radius);
         ws.sphere_sign.push_back(shape.flip_normals ? -1.f : 1.f);
     }
     if (ws.sphere_lanes.empty()) {  // (gathered from in any case)
-        ws.sphere_lanes.push_back(0), ws.sphere_center.push_back(Vec3()), ws.sphere_radius.push_back(1.f);
-        ws.sphere_sign.push_back(1.f);
+        ws.sphere_lanes.push_back(0), ws.sphere_uv.push_back(0.f), ws.sphere_center.push_back(Vec3());
+        ws.sphere_x.push_back(Vec3()), ws.sphere_y.push_back(Vec3()), ws.sphere_z.push_back(Vec3());
+        ws.sphere_radius.push_back(1.f), ws.sphere_sign.push_back(1.f);
     }
     // The lights without a mesh (the environment, spheres, those sampled aside) get a unit
     // triangle in the flat arrays, which the vector stage gathers from and ignores.
@@ -1309,22 +1313,94 @@ void camera_stage(Batch &b, int first, const WavefrontSample *samples, int n, co
     }
 }
 
+/// An interaction's columns of lane k: the point, its error bound and the geometric normal,
+/// and the shading frame of normal ns (Frame's constructor, written out) with wi = to_local(-d).
+RBPT_INLINE void store_interaction(Batch &b, int k, const Vec3 &p, const Vec3 &p_error, const Vec3 &gn, const Vec3 &ns) {
+    float fsign = std::copysign(1.f, ns.z);
+    float fa = -1.f / (fsign + ns.z), fb = ns.x * ns.y * fa;
+    Vec3 fs{1.f + fsign * ns.x * ns.x * fa, fsign * fb, -fsign * ns.x};
+    Vec3 ft{fb, fsign + ns.y * ns.y * fa, -ns.y};
+    Vec3 wi{b.dx[k] * -1.f, b.dy[k] * -1.f, b.dz[k] * -1.f};
+    b.px[k] = p.x, b.py[k] = p.y, b.pz[k] = p.z;
+    b.ex[k] = p_error.x, b.ey[k] = p_error.y, b.ez[k] = p_error.z;
+    b.nx[k] = gn.x, b.ny[k] = gn.y, b.nz[k] = gn.z;
+    b.sx[k] = fs.x, b.sy[k] = fs.y, b.sz[k] = fs.z;
+    b.tx[k] = ft.x, b.ty[k] = ft.y, b.tz[k] = ft.z;
+    b.fx[k] = ns.x, b.fy[k] = ns.y, b.fz[k] = ns.z;
+    b.wix[k] = dot(wi, fs), b.wiy[k] = dot(wi, ft), b.wiz[k] = dot(wi, ns);
+}
+
+/// Geometry::interaction's sphere branch for the lanes listed in list[0, m) (rays that hit a
+/// sphere), in SIMD lanes over the list: the hit re-projected onto the sphere in double
+/// precision, its normal, and with UV its uv where a texture reads it (spherical coordinates
+/// in the sphere's frame, from atan2_poly and acos_full as Geometry::interaction's). The rays are
+/// packed and the results computed into packed columns, then moved to the lanes one at a
+/// time (AVX2 has no scatter).
+template <bool UV>
+void sphere_interactions(Batch &b, const int *list, int m, uint32_t n_triangles, const WavefrontScene &ws) {
+    constexpr int B = WavefrontBatch;
+    const Vec3 *centers = ws.sphere_center.data();
+    const Vec3 *sphere_x = ws.sphere_x.data(), *sphere_y = ws.sphere_y.data(), *sphere_z = ws.sphere_z.data();
+    const float *radii = ws.sphere_radius.data(), *signs = ws.sphere_sign.data();
+    const float *sphere_uv = ws.sphere_uv.data();
+    // The listed lanes' rays and spheres, packed.
+    alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], ht[B];
+    alignas(64) int sphere[B];
+    for (int j = 0; j < m; ++j) {
+        const int k = list[j];
+        ox[j] = b.ox[k], oy[j] = b.oy[k], oz[j] = b.oz[k], dx[j] = b.dx[k], dy[j] = b.dy[k], dz[j] = b.dz[k];
+        ht[j] = b.ht[k], sphere[j] = int(b.prim[k] - n_triangles);
+    }
+    alignas(64) float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B], su[B], sv[B];
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const int a = sphere[j];
+        const float radius = radii[a];
+        const Vec3 c{centers[a].x, centers[a].y, centers[a].z};
+        double t = ht[j];
+        double r0 = double(ox[j]) + double(dx[j]) * t - double(c.x);
+        double r1 = double(oy[j]) + double(dy[j]) * t - double(c.y);
+        double r2 = double(oz[j]) + double(dz[j]) * t - double(c.z);
+        double scale = double(radius) / std::sqrt(r0 * r0 + r1 * r1 + r2 * r2);
+        Vec3 sp{float(double(c.x) + r0 * scale), float(double(c.y) + r1 * scale), float(double(c.z) + r2 * scale)};
+        Vec3 sp_error = gamma(4) * vabs(sp) + Vec3(1, 1, 1) * (gamma(4) * radius);
+        Vec3 local = normalize(Vec3{float(r0 * scale), float(r1 * scale), float(r2 * scale)});
+        Vec3 sn = local * signs[a];
+        if constexpr (UV) {
+            Vec3 q{dot(local, sphere_x[a]), dot(local, sphere_y[a]), dot(local, sphere_z[a])};
+            float phi = atan2_poly(q.y, q.x);
+            phi = phi < 0.f ? phi + 2.f * Pi : phi;
+            su[j] = phi * InvTwoPi, sv[j] = acos_full(q.z) * InvPi;
+        }
+        px[j] = sp.x, py[j] = sp.y, pz[j] = sp.z;
+        ex[j] = sp_error.x, ey[j] = sp_error.y, ez[j] = sp_error.z;
+        nx[j] = sn.x, ny[j] = sn.y, nz[j] = sn.z;
+    }
+    for (int j = 0; j < m; ++j) {
+        const int k = list[j];
+        const Vec3 sn{nx[j], ny[j], nz[j]};
+        store_interaction(b, k, {px[j], py[j], pz[j]}, {ex[j], ey[j], ez[j]}, sn, sn);
+        // (Its uv where it is read, as Geometry::interaction's: selected here, as both selects
+        // in the loop above stop GCC 12 from vectorising it.)
+        const bool read = UV && sphere_uv[sphere[j]] != 0.f;
+        b.uvx[k] = read ? su[j] : 0.f, b.uvy[k] = read ? sv[j] : 0.f;
+        b.done[k] = 1;
+    }
+}
+
 /// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
-/// triangle, or a sphere whose uv nothing reads, in SIMD lanes; `done` marks them. (Other
-/// lanes compute numbers nothing reads: the shade stage completes their interactions.)
-/// Vertex normals, uv and spheres, whose gathers and double-precision arithmetic are much of
-/// its cost, only in scenes that have them (Normals, UV, Spheres).
-template <bool Normals, bool UV, bool Spheres>
+/// triangle or a sphere; `done` marks them. The triangles in SIMD lanes over all lanes (the
+/// others compute numbers nothing reads: spheres' are overwritten, and the shade stage
+/// completes the rest), the spheres over the list of their lanes (sphere_interactions).
+/// Vertex normals and uv, whose gathers are much of its cost, only in scenes that have them
+/// (Normals, UV).
+template <bool Normals, bool UV>
 void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
     const Triangle *triangles = g.triangles.data();
     const Vec3 *positions = g.positions.data(), *normals = g.normals.data();
     const Vec2 *uvs = g.uvs.data();
     const int *flags = ws.triangle_flags.data();
     const uint32_t n_triangles = uint32_t(g.triangles.size());
-    const uint32_t n_analytic = uint32_t(ws.sphere_lanes.size());
-    const int *sphere_lanes = ws.sphere_lanes.data();
-    const Vec3 *centers = ws.sphere_center.data();
-    const float *radii = ws.sphere_radius.data(), *signs = ws.sphere_sign.data();
     using F = WavefrontScene::ShapeFlag;
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -1348,31 +1424,7 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
         float sign = (flag & F::FlipNormals) != 0 ? -1.f : 1.f;
         Vec3 gn = face_n * sign;
         ns = ns * sign;
-        int done = b.prim[k] < n_triangles;
-        if constexpr (Spheres) {
-            // A sphere: the hit re-projected onto it in double precision (the primitive's
-            // index clamped, as the triangle's).
-            const int a = int(std::min(std::max(b.prim[k], n_triangles) - n_triangles, n_analytic - 1));
-            const float radius = radii[a];
-            const Vec3 c{centers[a].x, centers[a].y, centers[a].z};
-            double t = b.ht[k];
-            double r0 = double(b.ox[k]) + double(b.dx[k]) * t - double(c.x);
-            double r1 = double(b.oy[k]) + double(b.dy[k]) * t - double(c.y);
-            double r2 = double(b.oz[k]) + double(b.dz[k]) * t - double(c.z);
-            double scale = double(radius) / std::sqrt(r0 * r0 + r1 * r1 + r2 * r2);
-            Vec3 sp{float(double(c.x) + r0 * scale), float(double(c.y) + r1 * scale),
-                    float(double(c.z) + r2 * scale)};
-            Vec3 sp_error = gamma(4) * vabs(sp) + Vec3(1, 1, 1) * (gamma(4) * radius);
-            Vec3 sn = normalize(Vec3{float(r0 * scale), float(r1 * scale), float(r2 * scale)}) * signs[a];
-            float sphere = b.prim[k] >= n_triangles ? 1.f : 0.f;  // (no &&: see vertex_stage)
-            sphere = sphere_lanes[a] != 0 ? sphere : 0.f;
-            p = select(sphere != 0.f, sp, p);
-            p_error = select(sphere != 0.f, sp_error, p_error);
-            gn = select(sphere != 0.f, sn, gn);
-            ns = select(sphere != 0.f, sn, ns);
-            done = sphere != 0.f ? 1 : done;
-        }
-        b.done[k] = done;
+        b.done[k] = b.prim[k] < n_triangles;
         // uv: the vertices' texture coordinates, or the barycentrics, where a texture reads it.
         if constexpr (UV) {
             // (Interpolated before the select: loads under a condition become masked gathers,
@@ -1386,28 +1438,33 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
         } else {
             b.uvx[k] = b.uvy[k] = 0.f;
         }
-        // The shading frame (Frame's constructor, written out) and wi = to_local(-d).
-        float fsign = std::copysign(1.f, ns.z);
-        float fa = -1.f / (fsign + ns.z), fb = ns.x * ns.y * fa;
-        Vec3 fs{1.f + fsign * ns.x * ns.x * fa, fsign * fb, -fsign * ns.x};
-        Vec3 ft{fb, fsign + ns.y * ns.y * fa, -ns.y};
-        Vec3 wi{b.dx[k] * -1.f, b.dy[k] * -1.f, b.dz[k] * -1.f};
-        b.px[k] = p.x, b.py[k] = p.y, b.pz[k] = p.z;
-        b.ex[k] = p_error.x, b.ey[k] = p_error.y, b.ez[k] = p_error.z;
-        b.nx[k] = gn.x, b.ny[k] = gn.y, b.nz[k] = gn.z;
-        b.sx[k] = fs.x, b.sy[k] = fs.y, b.sz[k] = fs.z;
-        b.tx[k] = ft.x, b.ty[k] = ft.y, b.tz[k] = ft.z;
-        b.fx[k] = ns.x, b.fy[k] = ns.y, b.fz[k] = ns.z;
-        b.wix[k] = dot(wi, fs), b.wiy[k] = dot(wi, ft), b.wiz[k] = dot(wi, ns);
+        store_interaction(b, k, p, p_error, gn, ns);
     }
+    if (!ws.any_spheres) return;
+    // The lanes whose ray hit a sphere (the analytic primitive's index clamped, as the
+    // triangle's).
+    const uint32_t n_analytic = uint32_t(ws.sphere_lanes.size()), n_prims = n_triangles + n_analytic;
+    const int *is_sphere = ws.sphere_lanes.data();
+    alignas(64) int on_sphere[WavefrontBatch], list[WavefrontBatch];
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const int a = int(std::min(std::max(b.prim[k], n_triangles) - n_triangles, n_analytic - 1));
+        float sphere = b.prim[k] >= n_triangles ? 1.f : 0.f;  // (no &&: see vertex_stage)
+        sphere = is_sphere[a] != 0 ? sphere : 0.f;
+        sphere = b.prim[k] < n_prims ? sphere : 0.f;
+        on_sphere[k] = sphere != 0.f ? 1 : 0;
+    }
+    const int m = simd::select_indices(on_sphere, n, 1, list);
+    if (ws.any_sphere_uv) sphere_interactions<true>(b, list, m, n_triangles, ws);
+    else sphere_interactions<false>(b, list, m, n_triangles, ws);
 }
 
 /// The instance of interaction_stage for a scene's shapes.
 using InteractionStage = void (*)(Batch &, int, const Geometry &, const WavefrontScene &);
 InteractionStage interaction_stage_for(const WavefrontScene &ws) {
-    return with_flags([](auto normals, auto uv, auto spheres) -> InteractionStage {
-        return interaction_stage<decltype(normals)::value, decltype(uv)::value, decltype(spheres)::value>;
-    }, ws.any_normals, ws.any_uv, ws.any_spheres);
+    return with_flags([](auto normals, auto uv) -> InteractionStage {
+        return interaction_stage<decltype(normals)::value, decltype(uv)::value>;
+    }, ws.any_normals, ws.any_uv);
 }
 
 /// The shade stage for the lanes whose vertex needs only constant lookups

@@ -106,13 +106,14 @@ struct WavefrontScene {
     enum ShapeFlag { HasNormals = 1, FlipNormals = 2, NeedsUV = 4, HasUVs = 8 };
     std::vector<int> triangle_flags;
     bool any_normals = false, any_uv = false;  ///< of the meshes: vertex normals, uv read
-    /// Per analytic primitive (Geometry::analytic): whether it is a sphere whose interaction
-    /// the interaction stage completes (one whose uv nothing reads), and its centre, radius
-    /// and normals' sign.
+    /// Per analytic primitive (Geometry::analytic): whether it is a sphere (whose interaction
+    /// the interaction stage completes: sphere_interactions), its centre, radius and
+    /// normals' sign, whether its uv is read, and its frame (Shape::local_x, local_y,
+    /// local_z: uv's axes). Padded with a primitive that is no sphere where there is none.
     std::vector<int> sphere_lanes;
-    std::vector<Vec3> sphere_center;
-    std::vector<float> sphere_radius, sphere_sign;
-    bool any_spheres = false;
+    std::vector<Vec3> sphere_center, sphere_x, sphere_y, sphere_z;
+    std::vector<float> sphere_radius, sphere_sign, sphere_uv;  ///< (sphere_uv: 1 or 0)
+    bool any_spheres = false, any_sphere_uv = false;  ///< whether some are spheres, some read uv
     std::vector<Light> lights;        ///< per Scene::emitters
     std::vector<float> radiance;      ///< Light::radiance, 3 per light (for gathers)
     bool environment = false;         ///< whether one is the `constant` environment

@@ -324,7 +324,8 @@ def textured_room(tmp_path, integrator=None):
                                                             "to_uv": tr.Transform.scale([2.5, 1.5, 1])})}},
         checks={"type": "rectangle", "to_world": tr.Transform.translate([0.4, 0.01, 0.3]).rotate([1, 0, 0], -90).scale(0.4),
                 "bsdf": {"type": "twosided", "bsdf": diffuse({"type": "checkerboard"})}},
-        ball={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([-0.4, 0.25, 0.2]),
+        ball={"type": "sphere", "radius": 0.25,
+              "to_world": tr.Transform.translate([-0.4, 0.25, 0.2]).rotate([0.3, 1, 0.5], 40),
               "bsdf": diffuse({"type": "checkerboard", "to_uv": tr.Transform.scale([4, 4, 1])})},
         colors={"type": "ply", "filename": str(tmp_path / "c.ply"),
                 "bsdf": {"type": "twosided", "bsdf": diffuse({"type": "mesh_attribute", "name": "vertex_color"})}})
@@ -332,7 +333,8 @@ def textured_room(tmp_path, integrator=None):
 
 def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkeypatch):
     # A diffuse reflectance that is a bitmap, a checkerboard or a mesh attribute is looked up
-    # in the trace stage and shaded in lanes.
+    # in the trace stage and shaded in lanes; the checkered ball's uv (in its rotated frame)
+    # is the interaction stage's.
     scene = textured_room(tmp_path)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=6)
     assert float(scalar.mean()) > 0.01

@@ -900,6 +900,30 @@ static void test13_vectorisable_math() {
     CHECK(worst_acos < 3e-7);    // (measured 2.4e-7)
     CHECK(std::isinf(erfinv(1.f)) && erfinv(1.f) > 0.f && std::isinf(erfinv(-1.f)) && erfinv(-1.f) < 0.f);
     CHECK(log_poly(1.f) == 0.f);
+    // atan2_poly against double atan2 on directions all around the circle, at radii from tiny
+    // to large, and on the axes (the quadrants' signs, atan2's at zero); acos_full over
+    // [-1, 1] and clamped beyond.
+    double worst_atan2 = 0.0, worst_acos_full = 0.0;
+    for (int i = 0; i <= 200000; ++i) {
+        double angle = -3.14159 + 6.28318 * double(i) / 200000.0;
+        for (float r : {1e-20f, 1.f, 3e5f}) {
+            float x = float(r * std::cos(angle)), y = float(r * std::sin(angle));
+            worst_atan2 = std::max(worst_atan2, std::abs(atan2_poly(y, x) - std::atan2(double(y), double(x))));
+        }
+        float c = -1.f + 2.f * float(i) / 200000.f;
+        worst_acos_full = std::max(worst_acos_full, std::abs(acos_full(c) - std::acos(double(c))));
+    }
+    CHECK(worst_atan2 < 4e-7);       // (measured 2.7e-7)
+    CHECK(worst_acos_full < 5e-7);   // (measured 4.0e-7: pi - acos_poly near -1)
+    for (float s : {1.f, -1.f}) {
+        CHECK(atan2_poly(0.f * s, 1.f) == 0.f && std::signbit(atan2_poly(0.f * s, 1.f)) == (s < 0.f));
+        CHECK(std::abs(atan2_poly(0.f * s, -1.f) - s * 3.14159265f) < 4e-7f);
+        CHECK(std::abs(atan2_poly(s, 0.f) - s * 1.57079633f) < 4e-7f);
+        CHECK(std::abs(atan2_poly(s, 1.f) - s * 0.78539816f) < 4e-7f && std::abs(atan2_poly(s, -1.f) - s * 2.35619449f) < 4e-7f);
+    }
+    CHECK(atan2_poly(0.f, 0.f) == 0.f);
+    CHECK(acos_full(1.f) == 0.f && std::abs(acos_full(-1.f) - 3.14159265f) < 4e-7f);
+    CHECK(acos_full(1.5f) == acos_full(1.f) && acos_full(-1.5f) == acos_full(-1.f));
 }
 
 // ---- 5. Sink nodes: parameter reads that scatter into a gradient buffer ---------------------
