@@ -18,7 +18,8 @@ struct Bitmap {
     WrapMode wrap = WrapMode::Repeat;
     bool nearest = false;  ///< filter_type "nearest" instead of "bilinear"
 
-    int wrap_index(int i, int n) const {
+    /// Texel index i wrapped into [0, n).
+    RBPT_INLINE int wrap_index(int i, int n) const {
         switch (wrap) {
             case WrapMode::Repeat: { int r = i % n; return r < 0 ? r + n : r; }
             case WrapMode::Clamp: return std::clamp(i, 0, n - 1);
@@ -29,6 +30,20 @@ struct Bitmap {
             }
         }
         return 0;
+    }
+    /// wrap_index(i, n) and wrap_index(i + 1, n), with one integer division (a bilinear
+    /// lookup's two neighbours along an axis).
+    RBPT_INLINE void wrap_pair(int i, int n, int64_t *w0, int64_t *w1) const {
+        if (wrap == WrapMode::Clamp) {
+            *w0 = std::clamp(i, 0, n - 1), *w1 = std::clamp(i, -1, n - 2) + 1;
+            return;
+        }
+        const int period = wrap == WrapMode::Repeat ? n : 2 * n;
+        int r = i % period;
+        r = r < 0 ? r + period : r;
+        const int r1 = r + 1 == period ? 0 : r + 1;
+        *w0 = r < n ? r : period - 1 - r;  // (mirrored in the period's second half)
+        *w1 = r1 < n ? r1 : period - 1 - r1;
     }
 };
 
@@ -98,8 +113,9 @@ S eval_bitmap(const Bitmap &bm, const P &params, Vec2 uv) {
     y -= 0.5f;
     float fx = std::floor(x), fy = std::floor(y);
     float wx1 = x - fx, wy1 = y - fy, wx0 = 1.f - wx1, wy0 = 1.f - wy1;
-    int64_t i0 = bm.wrap_index(int(fx), bm.width), i1 = bm.wrap_index(int(fx) + 1, bm.width);
-    int64_t j0 = bm.wrap_index(int(fy), bm.height), j1 = bm.wrap_index(int(fy) + 1, bm.height);
+    int64_t i0, i1, j0, j1;
+    bm.wrap_pair(int(fx), bm.width, &i0, &i1);
+    bm.wrap_pair(int(fy), bm.height, &j0, &j1);
     int64_t index[4] = {j0 * bm.width + i0, j0 * bm.width + i1, j1 * bm.width + i0,
                         j1 * bm.width + i1};
     float weight[4] = {wx0 * wy0, wx1 * wy0, wx0 * wy1, wx1 * wy1};

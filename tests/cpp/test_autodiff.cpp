@@ -2,7 +2,8 @@
 // derivatives of every operation against analytic derivatives and central finite differences,
 // the tape's bookkeeping (constants, accumulation, custom nodes, reuse without allocation, long
 // chains) and the unbiased integrate() operator, including its independence from the forward
-// samples and nested use; and the vectorisable exp and erfc of microfacet.h. Prints "N passed, M failed" last; exits nonzero on any failure.
+// samples and nested use; the vectorisable math of math.h and microfacet.h, and a bitmap's
+// wrapped texel pairs (textures.h). Prints "N passed, M failed" last; exits nonzero on any failure.
 //
 // Build: g++ -std=c++17 -O2 -Wall -I csrc tests/cpp/test_autodiff.cpp (tests/test_autodiff.py).
 
@@ -20,6 +21,7 @@
 #include "dual.h"
 #include "microfacet.h"
 #include "sampler.h"
+#include "textures.h"
 
 // ---- Heap allocation counter (to show that recording allocates nothing after warm-up) ------
 
@@ -924,6 +926,21 @@ static void test13_vectorisable_math() {
     CHECK(atan2_poly(0.f, 0.f) == 0.f);
     CHECK(acos_full(1.f) == 0.f && std::abs(acos_full(-1.f) - 3.14159265f) < 4e-7f);
     CHECK(acos_full(1.5f) == acos_full(1.f) && acos_full(-1.5f) == acos_full(-1.f));
+    // A bilinear lookup's pair of wrapped texel indices, with one division: the indices
+    // wrap_index gives i and i + 1, in every mode and size, for i on both sides of zero.
+    bool pairs_agree = true;
+    for (WrapMode mode : {WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp}) {
+        Bitmap bm;
+        bm.wrap = mode;
+        for (int n : {1, 2, 3, 5, 8}) {
+            for (int i = -50; i <= 50; ++i) {
+                int64_t w0 = -1, w1 = -1;
+                bm.wrap_pair(i, n, &w0, &w1);
+                pairs_agree = pairs_agree && w0 == bm.wrap_index(i, n) && w1 == bm.wrap_index(i + 1, n);
+            }
+        }
+    }
+    CHECK(pairs_agree);
 }
 
 // ---- 5. Sink nodes: parameter reads that scatter into a gradient buffer ---------------------
