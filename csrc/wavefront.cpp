@@ -161,18 +161,18 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     }
     for (uint32_t s : scene.geometry.analytic) {
         const Shape &shape = scene.geometry.shapes[s];
-        bool lanes = shape.kind == ShapeKind::Sphere;
-        ws.any_spheres = ws.any_spheres || lanes;
-        ws.any_sphere_uv = ws.any_sphere_uv || (lanes && shape.needs_uv);
-        ws.sphere_lanes.push_back(lanes);
-        ws.sphere_uv.push_back(lanes && shape.needs_uv ? 1.f : 0.f);
+        bool sphere = shape.kind == ShapeKind::Sphere;
+        ws.any_spheres = ws.any_spheres || sphere;
+        ws.any_sphere_uv = ws.any_sphere_uv || (sphere && shape.needs_uv);
+        ws.is_sphere.push_back(sphere);
+        ws.sphere_uv.push_back(sphere && shape.needs_uv ? 1.f : 0.f);
         ws.sphere_center.push_back(shape.center);
         ws.sphere_x.push_back(shape.local_x), ws.sphere_y.push_back(shape.local_y), ws.sphere_z.push_back(shape.local_z);
         ws.sphere_radius.push_back(shape.radius);
         ws.sphere_sign.push_back(shape.flip_normals ? -1.f : 1.f);
     }
-    if (ws.sphere_lanes.empty()) {  // (gathered from in any case)
-        ws.sphere_lanes.push_back(0), ws.sphere_uv.push_back(0.f), ws.sphere_center.push_back(Vec3());
+    if (ws.is_sphere.empty()) {  // (gathered from in any case)
+        ws.is_sphere.push_back(0), ws.sphere_uv.push_back(0.f), ws.sphere_center.push_back(Vec3());
         ws.sphere_x.push_back(Vec3()), ws.sphere_y.push_back(Vec3()), ws.sphere_z.push_back(Vec3());
         ws.sphere_radius.push_back(1.f), ws.sphere_sign.push_back(1.f);
     }
@@ -1443,8 +1443,8 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
     if (!ws.any_spheres) return;
     // The lanes whose ray hit a sphere (the analytic primitive's index clamped, as the
     // triangle's).
-    const uint32_t n_analytic = uint32_t(ws.sphere_lanes.size()), n_prims = n_triangles + n_analytic;
-    const int *is_sphere = ws.sphere_lanes.data();
+    const uint32_t n_analytic = uint32_t(ws.is_sphere.size()), n_prims = n_triangles + n_analytic;
+    const int *is_sphere = ws.is_sphere.data();
     alignas(64) int on_sphere[WavefrontBatch], list[WavefrontBatch];
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {

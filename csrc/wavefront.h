@@ -110,7 +110,7 @@ struct WavefrontScene {
     /// the interaction stage completes: sphere_interactions), its centre, radius and
     /// normals' sign, whether its uv is read, and its frame (Shape::local_x, local_y,
     /// local_z: uv's axes). Padded with a primitive that is no sphere where there is none.
-    std::vector<int> sphere_lanes;
+    std::vector<int> is_sphere;
     std::vector<Vec3> sphere_center, sphere_x, sphere_y, sphere_z;
     std::vector<float> sphere_radius, sphere_sign, sphere_uv;  ///< (sphere_uv: 1 or 0)
     bool any_spheres = false, any_sphere_uv = false;  ///< whether some are spheres, some read uv
