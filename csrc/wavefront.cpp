@@ -165,16 +165,11 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.any_spheres = ws.any_spheres || sphere;
         ws.any_sphere_uv = ws.any_sphere_uv || (sphere && shape.needs_uv);
         ws.is_sphere.push_back(sphere);
-        ws.sphere_uv.push_back(sphere && shape.needs_uv ? 1.f : 0.f);
+        ws.sphere_uv.push_back(sphere && shape.needs_uv);
         ws.sphere_center.push_back(shape.center);
         ws.sphere_x.push_back(shape.local_x), ws.sphere_y.push_back(shape.local_y), ws.sphere_z.push_back(shape.local_z);
         ws.sphere_radius.push_back(shape.radius);
         ws.sphere_sign.push_back(shape.flip_normals ? -1.f : 1.f);
-    }
-    if (ws.is_sphere.empty()) {  // (gathered from in any case)
-        ws.is_sphere.push_back(0), ws.sphere_uv.push_back(0.f), ws.sphere_center.push_back(Vec3());
-        ws.sphere_x.push_back(Vec3()), ws.sphere_y.push_back(Vec3()), ws.sphere_z.push_back(Vec3());
-        ws.sphere_radius.push_back(1.f), ws.sphere_sign.push_back(1.f);
     }
     // The lights without a mesh (the environment, spheres, those sampled aside) get a unit
     // triangle in the flat arrays, which the vector stage gathers from and ignores.
@@ -1342,7 +1337,7 @@ void sphere_interactions(Batch &b, const int *list, int m, uint32_t n_triangles,
     const Vec3 *centers = ws.sphere_center.data();
     const Vec3 *sphere_x = ws.sphere_x.data(), *sphere_y = ws.sphere_y.data(), *sphere_z = ws.sphere_z.data();
     const float *radii = ws.sphere_radius.data(), *signs = ws.sphere_sign.data();
-    const float *sphere_uv = ws.sphere_uv.data();
+    const int *sphere_uv = ws.sphere_uv.data();
     // The listed lanes' rays and spheres, packed.
     alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], ht[B];
     alignas(64) int sphere[B];
@@ -1382,7 +1377,7 @@ void sphere_interactions(Batch &b, const int *list, int m, uint32_t n_triangles,
         store_interaction(b, k, {px[j], py[j], pz[j]}, {ex[j], ey[j], ez[j]}, sn, sn);
         // (Its uv where it is read, as Geometry::interaction's: selected here, as both selects
         // in the loop above stop GCC 12 from vectorising it.)
-        const bool read = UV && sphere_uv[sphere[j]] != 0.f;
+        const bool read = UV && sphere_uv[sphere[j]] != 0;
         b.uvx[k] = read ? su[j] : 0.f, b.uvy[k] = read ? sv[j] : 0.f;
         b.done[k] = 1;
     }
@@ -1667,7 +1662,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0;
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
-            const int last = cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth ? any_last : 0;
+            const int last = is_last(k) ? any_last : 0;
             const int set_up = b.shade[k] != 0 ? quick_set : 0;
             visit[k] = last != 0 || set_up == 0 ? 1 : 0;
         }

@@ -109,10 +109,10 @@ struct WavefrontScene {
     /// Per analytic primitive (Geometry::analytic): whether it is a sphere (whose interaction
     /// the interaction stage completes: sphere_interactions), its centre, radius and
     /// normals' sign, whether its uv is read, and its frame (Shape::local_x, local_y,
-    /// local_z: uv's axes). Padded with a primitive that is no sphere where there is none.
-    std::vector<int> is_sphere;
+    /// local_z: uv's axes). Read only where some analytic primitive is a sphere.
+    std::vector<int> is_sphere, sphere_uv;
     std::vector<Vec3> sphere_center, sphere_x, sphere_y, sphere_z;
-    std::vector<float> sphere_radius, sphere_sign, sphere_uv;  ///< (sphere_uv: 1 or 0)
+    std::vector<float> sphere_radius, sphere_sign;
     bool any_spheres = false, any_sphere_uv = false;  ///< whether some are spheres, some read uv
     std::vector<Light> lights;        ///< per Scene::emitters
     std::vector<float> radiance;      ///< Light::radiance, 3 per light (for gathers)
