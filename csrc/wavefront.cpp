@@ -98,27 +98,6 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         return shape.kind == ShapeKind::Sphere ||
                (shape.kind == ShapeKind::Mesh && shape.tri_count > 0 && shape.tri_count <= 8);
     };
-    // Beckmann's lanes make the vertex stage too large for GCC to vectorise where the scene
-    // has several emitters, one of them without a mesh, and mirrors or dielectrics: there they
-    // are shaded aside (vertex_stage_for has no such instance). (An emitter sampled aside,
-    // Light::aside, counts as one without a mesh.)
-    bool non_mesh = false;
-    for (const Emitter &e : scene.emitters)
-        non_mesh = non_mesh || e.type == EmitterType::Constant || !in_lanes(e) ||
-                   (e.type == EmitterType::Area && scene.geometry.shapes[e.shape].kind == ShapeKind::Sphere);
-    if (ws.any_beckmann && scene.emitters.size() != 1 && ws.any_delta && non_mesh) {
-        ws.any_beckmann = false;
-        ws.any_rough = false;
-        any_lanes = false;
-        for (WavefrontScene::Material &m : ws.materials) {
-            if (m.beckmann != 0.f) {
-                m.lane = WavefrontScene::Aside;
-                m.diffuse = m.mirror = m.rough = m.plastic = m.beckmann = 0.f;
-            }
-            ws.any_rough = ws.any_rough || m.rough != 0.f;
-            any_lanes = any_lanes || m.lane != WavefrontScene::Aside;
-        }
-    }
     if (!any_lanes) return std::nullopt;
     for (const WavefrontScene::Material &m : ws.materials)
         ws.any_ggx = ws.any_ggx || (m.rough != 0.f && m.beckmann == 0.f);
@@ -271,13 +250,14 @@ struct alignas(64) Batch {
     int record_reflect[B], record_refract[B];  ///< a dielectric's WavefrontVertex entries, or -1
     int record_rough[B];  ///< a differentiated roughness's WavefrontVertex entry, or -1
     // The rough BSDFs' directions, in the frame the vertex stage evaluates them in (twosided's
-    // flip applied): towards the emitter sample, and the BSDF sample.
-    float nwx[B], nwy[B], nwz[B], swx[B], swy[B], swz[B];
+    // flip applied): towards the emitter sample (the vertex stage's), and the BSDF sample
+    // (rough_sample_stage's) with its density and its weight value / density.
+    float nwx[B], nwy[B], nwz[B], swx[B], swy[B], swz[B], rpdf[B], rwr[B], rwg[B], rwb[B];
     // A Beckmann lane's visible normal for its BSDF sample, and the microfacet terms
     // towards the sample (beckmann_stage).
     float bmx[B], bmy[B], bmz[B], bD[B], bgi[B], bgo[B];
-    // Its emitter sample's weight and density, the throughput before the vertex, and whether
-    // the sample stands before the BSDF's test (beckmann_emitter_stage).
+    // A rough lane's emitter sample's density, the throughput before the vertex, and whether
+    // the sample stands before the BSDF's test (rough_emitter_stage).
     float espdf[B], obr[B], obg[B], obb[B], sampled0[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
@@ -449,15 +429,15 @@ RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Ve
     return {beckmann_D(alpha, h), beckmann_G1(alpha, wi, h), beckmann_G1(alpha, wo, h)};
 }
 
-/// Terms: GGX's (Microfacet::GGX); GGX's, or `stored` where beckmann_flag is 1
-/// (Microfacet::Stored: beckmann_stage computed them, as GCC does not vectorise the vertex
-/// stage with Beckmann's terms in it); `stored` in every lane (Microfacet::StoredOnly: no GGX
-/// BSDF in the scene); Beckmann's (Microfacet::Beckmann).
-enum class Microfacet { GGX, Stored, StoredOnly, Beckmann };
+/// A rough BSDF's value and density towards wo, with the microfacet terms Terms: GGX's
+/// (Microfacet::GGX), Beckmann's (Microfacet::Beckmann), or `stored` (Microfacet::StoredOnly:
+/// beckmann_stage's, towards its sampled direction).
+enum class Microfacet { GGX, StoredOnly, Beckmann };
 template <Microfacet Terms>
-RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plastic, float beckmann_flag,
-                                 const MicrofacetTerms &stored, const float *tables, const Vec3 &wi,
-                                 const Vec3 &wo, const float a[3], const float s[3]) {
+RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const MicrofacetTerms &stored,
+                                 const float *tables, const Vec3 &wi, const Vec3 &wo, const float a[3],
+                                 const float s[3]) {
+    const float plastic = m.plastic;
     float up = wi.z > 0.f ? 1.f : 0.f;
     up = wo.z > 0.f ? up : 0.f;
     Vec3 h = normalize(wi + wo);
@@ -469,12 +449,6 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, float plasti
         D = stored.D, g_i = stored.g_i, g = stored.g;
     } else {
         D = ggx_D(m.alpha, h), g_i = ggx_G1(m.alpha, wi, h), g = ggx_G1(m.alpha, wo, h);
-    }
-    if constexpr (Terms == Microfacet::Stored) {
-        const bool beckmann = beckmann_flag != 0.f;
-        D = beckmann ? stored.D : D;
-        g_i = beckmann ? stored.g_i : g_i;
-        g = beckmann ? stored.g : g;
     }
     float l = D * g_i / (4.f * wi.z);
     // The conductor.
@@ -567,12 +541,14 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// sample to the roulette. It runs over all lanes, unmasked, and sets `alive` and `shadow`
 /// only where it shades: the caller restores the lanes shaded aside, and the others have
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
-/// same in every lane: loads, not gathers. Delta, Rough: whether some lanes are mirrors or
-/// dielectrics (which sample no emitter), whether some are rough (0: none, 1: GGX only, 2:
-/// Beckmann too, 3: Beckmann only); NonMesh: whether some emitters have no mesh (the
-/// `constant` environment, spheres: 1), or none has (2, with several lights). The code of the
-/// BSDFs and emitters a scene does not have is left out.
-template <bool OneLight, bool Delta, int Rough, int NonMesh>
+/// same in every lane: loads, not gathers. Delta: whether some lanes are mirrors or
+/// dielectrics (which sample no emitter); Rough: whether some are rough, whose BSDF samples
+/// rough_sample_stage took before (this stage takes them from the rs* columns) and whose
+/// emitter samples rough_emitter_stage evaluates after (this stage evaluates them as a
+/// diffuse BSDF's and keeps what that stage needs); NonMesh: whether some emitters have no
+/// mesh (the `constant` environment, spheres: 1), or none has (2, with several lights). The
+/// code of the BSDFs and emitters a scene does not have is left out.
+template <bool OneLight, bool Delta, bool Rough, int NonMesh>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
@@ -581,7 +557,6 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     const WavefrontScene::Light first = ws.lights[0];
     const float *cdfs = ws.cdf.data();
     const LightTriangles tris(ws);
-    const float *tables = ws.tables.data();
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
     // vectorise the boolean selects it makes of && chains and of booleans combined with
@@ -603,8 +578,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // The BSDF: diffuse or rough (which sample an emitter), a mirror or a dielectric.
         const float diffuse = Delta || Rough ? m.diffuse : 1.f;
         const float mirror = Delta ? m.mirror : 0.f;
-        const float rough = Rough ? m.rough : 0.f, plastic = Rough ? m.plastic : 0.f;
-        const float beckmann = Rough >= 2 ? m.beckmann : 0.f;
+        const float rough = Rough ? m.rough : 0.f;
         const float smooth = shade * (diffuse + rough) * nee;
         const float a[3] = {b.ar[k], b.ag[k], b.ab[k]}, s[3] = {b.tr[k], b.tg[k], b.tb[k]};
         Vec3 p{b.px[k], b.py[k], b.pz[k]};
@@ -726,19 +700,14 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Color3f f{up != 0.f ? a[0] * cos_term : 0.f, up != 0.f ? a[1] * cos_term : 0.f,
                   up != 0.f ? a[2] * cos_term : 0.f};
         float f_pdf = up != 0.f ? InvPi * std::max(wo.z, 0.f) : 0.f;
-        if constexpr (Rough == 1 || Rough == 2) {  // (Beckmann lanes: beckmann_emitter_stage's)
-            RoughEval e = rough_eval<Microfacet::GGX>(m, plastic, 0.f, MicrofacetTerms{}, tables, wi, wo, a, s);
-            f.v[0] = rough != 0.f ? e.r : f.v[0], f.v[1] = rough != 0.f ? e.g : f.v[1];
-            f.v[2] = rough != 0.f ? e.b : f.v[2];
-            f_pdf = rough != 0.f ? e.pdf : f_pdf;
-        }
-        // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
-        // of f, which was selected, would again become a boolean select).
-        if constexpr (Rough >= 2) {
-            // (What beckmann_emitter_stage needs to redo this for Beckmann lanes.)
+        if constexpr (Rough) {
+            // (What rough_emitter_stage needs to redo this for the rough lanes.)
+            b.nwx[k] = wo.x, b.nwy[k] = wo.y, b.nwz[k] = wo.z;
             b.espdf[k] = es_pdf;
             b.obr[k] = b.br[k], b.obg[k] = b.bg[k], b.obb[k] = b.bb[k], b.sampled0[k] = sampled;
         }
+        // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
+        // of f, which was selected, would again become a boolean select).
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf * bsdf_mis);
@@ -795,31 +764,14 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float wr = refract != 0.f ? s[0] * t2 : a[0], wg = refract != 0.f ? s[1] * t2 : a[1];
         float wb = refract != 0.f ? s[2] * t2 : a[2];
         if constexpr (Rough) {
-            // Rough: the reflection about a visible normal (GGX's, or Beckmann's from
-            // beckmann_stage; roughplastic: where u1 picks the specular lobe, else the
-            // cosine-weighted direction), weighted by value / pdf.
-            const Vec3 stored_normal{b.bmx[k], b.bmy[k], b.bmz[k]};
-            Vec3 normal = Rough == 3 ? stored_normal : ggx_visible_normal(m.alpha, wi, u2);
-            if constexpr (Rough == 2) normal = select(beckmann != 0.f, stored_normal, normal);
-            Vec3 specular = reflect(wi, normal);
-            float pick_base = u1 < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : plastic;
-            Vec3 rwo = select(pick_base != 0.f, cos_wo, specular);
-            constexpr Microfacet terms = Rough == 3   ? Microfacet::StoredOnly
-                                         : Rough == 2 ? Microfacet::Stored
-                                                      : Microfacet::GGX;
-            RoughEval e = rough_eval<terms>(m, plastic, beckmann, MicrofacetTerms{b.bD[k], b.bgi[k], b.bgo[k]},
-                                            tables, wi, rwo, a, s);
-            float rpdf = wi.z > 0.f ? e.pdf : 0.f;
+            // Rough: rough_sample_stage's sample (in the flipped frame).
+            const Vec3 rwo{b.swx[k], b.swy[k], b.swz[k]};
             bwo = select(rough != 0.f, rwo, bwo);
-            bpdf = rough != 0.f ? rpdf : bpdf;
-            wr = rough != 0.f ? e.r / e.pdf : wr, wg = rough != 0.f ? e.g / e.pdf : wg;
-            wb = rough != 0.f ? e.b / e.pdf : wb;
+            bpdf = rough != 0.f ? b.rpdf[k] : bpdf;
+            wr = rough != 0.f ? b.rwr[k] : wr, wg = rough != 0.f ? b.rwg[k] : wg;
+            wb = rough != 0.f ? b.rwb[k] : wb;
         }
         float alive = bpdf > 0.f ? shade : 0.f;
-        if constexpr (Rough) {  // (for render_bwd's roughness derivatives)
-            b.nwx[k] = wo.x, b.nwy[k] = wo.y, b.nwz[k] = wo.z;
-            b.swx[k] = bwo.x, b.swy[k] = bwo.y, b.swz[k] = bwo.z;
-        }
         bwo.z = bwo.z * side;
         float br = b.br[k] * wr, bg = b.bg[k] * wg, bb = b.bb[k] * wb;
         float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
@@ -924,25 +876,15 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
 /// The instance of vertex_stage for a scene's emitters and BSDFs.
 using VertexStage = void (*)(Batch &, int, const WavefrontScene &, const IntegratorSettings &);
 VertexStage vertex_stage_for(const WavefrontScene &ws) {
-    const int rough = ws.any_beckmann ? (ws.any_ggx ? 2 : 3) : ws.any_rough ? 1 : 0;
-    // The instance for NonMesh N (0, 1, 2) and the rough BSDFs. (No Beckmann instance with
-    // several lights, one without a mesh, and delta BSDFs: wavefront_scene shades Beckmann
-    // aside there.)
-    auto instance = [rough](auto one_light, auto delta, auto non_mesh) -> VertexStage {
+    return with_flags([&](auto one_light, auto delta, auto rough, auto env) -> VertexStage {
         constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value;
-        constexpr int N = decltype(non_mesh)::value;
-        if constexpr (!O && D && N) return rough ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
-        else if (rough >= 2) return rough == 3 ? vertex_stage<O, D, 3, N> : vertex_stage<O, D, 2, N>;
-        else return rough == 1 ? vertex_stage<O, D, 1, N> : vertex_stage<O, D, 0, N>;
-    };
-    return with_flags([&](auto one_light, auto delta, auto env) -> VertexStage {
-        constexpr bool O = decltype(one_light)::value, E = decltype(env)::value;
+        constexpr bool R = decltype(rough)::value, E = decltype(env)::value;
         // Several lights, none a mesh: NonMesh 2.
         if constexpr (!O && E) {
-            if (!ws.any_mesh_lights) return instance(one_light, delta, std::integral_constant<int, 2>{});
+            if (!ws.any_mesh_lights) return vertex_stage<O, D, R, 2>;
         }
-        return instance(one_light, delta, std::integral_constant<int, E ? 1 : 0>{});
-    }, ws.lights.size() == 1, ws.any_delta, ws.environment || ws.any_sphere_lights || ws.any_aside_lights);
+        return vertex_stage<O, D, R, E ? 1 : 0>;
+    }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment || ws.any_sphere_lights || ws.any_aside_lights);
 }
 
 /// The emitter samples of the lanes whose emitter the vector stage does not sample itself
@@ -973,35 +915,125 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
     }
 }
 
-/// The Beckmann lanes' emitter samples, after the vector stage evaluated them with GGX's
-/// terms: the BSDF towards each with Beckmann's (rough_eval, as the vector stage would), its
-/// MIS weight and contribution, for the `count` lanes listed in `lanes` (beckmann_stage's).
-/// (A loop of its own: with these terms in it GCC does not vectorise the vertex stage.)
-void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const WavefrontScene &ws, float bsdf_mis) {
+/// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
+/// (GGX's, or Beckmann's), in stages over the lanes that have them, listed (GGX:
+/// list_ggx_lanes; Beckmann: beckmann_stage), so that the vector stage carries none of their
+/// code and the other lanes pay nothing for it (glossy, whose walls are diffuse and whose
+/// rough lanes are a third of its vertices: 459-460 -> 448-450 ms). A new BSDF with costly
+/// terms takes stages of its own in this pattern. The lanes' inputs are packed one lane at a
+/// time (gathers in lanes were no faster) and their results moved back so; the rest runs in
+/// SIMD lanes over the list, padded to whole vectors (pad_list).
+
+/// The lanes [0, n) shaded by a rough BSDF of GGX's distribution, listed in `lanes`; returns
+/// their number.
+int list_ggx_lanes(const Batch &b, int n, const WavefrontScene &ws, int *lanes) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    alignas(64) int flag[B];
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        const float shade = b.shade[k] != 0 ? 1.f : 0.f;
+        flag[k] = m.rough * (1.f - m.beckmann) * shade != 0.f ? 1 : 0;
+    }
+    return simd::select_indices(flag, n, 1, lanes);
+}
+
+/// The length of a list of `count` lanes (count > 0) rounded up to whole vectors of 16, its
+/// entries from `count` on repeating its last lane: the loops over a list run over that
+/// length, without the lane-by-lane remainder GCC adds after a vectorised loop.
+RBPT_INLINE int pad_list(int *lanes, int count) {
+    const int padded = (count + 15) & ~15;
+    for (int j = count; j < padded; ++j) lanes[j] = lanes[count - 1];
+    return padded;
+}
+
+/// The BSDF samples of the `count` rough lanes listed in `lanes`, before the vector stage,
+/// from its numbers (draw_stage's), in its frame (twosided's flip): the reflection about a
+/// visible normal (GGX's, sampled here; with Terms StoredOnly Beckmann's, beckmann_stage's,
+/// with its microfacet terms) or, for a roughplastic where u1 picks its base, the
+/// cosine-weighted direction; its density (zero where wi is below the surface) and its
+/// weight value / density, into the swx.., rpdf and rw* columns.
+template <Microfacet Terms>
+void rough_sample_stage(Batch &b, int *lanes, int count, const WavefrontScene &ws) {
+    static_assert(Terms == Microfacet::GGX || Terms == Microfacet::StoredOnly, "GGX's normals, or beckmann_stage's");
+    constexpr bool Stored = Terms == Microfacet::StoredOnly;
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float *tables = ws.tables.data();
+    alignas(64) int mat[B];
+    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], u1s[B], ux[B], uy[B];
+    alignas(64) float mx[B], my[B], mz[B], D[B], g_i[B], g_o[B];
+    const int padded = pad_list(lanes, count);
+    for (int j = 0; j < padded; ++j) {
+        const int k = lanes[j];
+        mat[j] = b.mat[k];
+        ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
+        wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
+        u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
+        if constexpr (Stored) {
+            mx[j] = b.bmx[k], my[j] = b.bmy[k], mz[j] = b.bmz[k];
+            D[j] = b.bD[k], g_i[j] = b.bgi[k], g_o[j] = b.bgo[k];
+        }
+    }
+    alignas(64) float ox[B], oy[B], oz[B], pdf[B], wr[B], wg[B], wb[B];
+#pragma GCC ivdep
+    for (int j = 0; j < padded; ++j) {
+        const WavefrontScene::Material &m = mats[mat[j]];
+        const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
+        Vec3 wi{wix[j], wiy[j], wiz[j]};
+        float side = wi.z < 0.f ? -1.f : 1.f;
+        side = m.twosided != 0 ? side : 1.f;
+        wi.z = wi.z * side;
+        const Vec2 u2{ux[j], uy[j]};
+        const Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
+        const Vec3 normal = Stored ? Vec3{mx[j], my[j], mz[j]} : ggx_visible_normal(m.alpha, wi, u2);
+        const Vec3 specular = reflect(wi, normal);
+        const float pick_base = u1s[j] < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : m.plastic;
+        const Vec3 wo = select(pick_base != 0.f, cos_wo, specular);
+        const RoughEval e = rough_eval<Terms>(m, MicrofacetTerms{D[j], g_i[j], g_o[j]}, tables, wi, wo, a, s);
+        ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
+        pdf[j] = wi.z > 0.f ? e.pdf : 0.f;
+        wr[j] = e.r / e.pdf, wg[j] = e.g / e.pdf, wb[j] = e.b / e.pdf;
+    }
+    for (int j = 0; j < count; ++j) {
+        const int k = lanes[j];
+        b.swx[k] = ox[j], b.swy[k] = oy[j], b.swz[k] = oz[j];
+        b.rpdf[k] = pdf[j], b.rwr[k] = wr[j], b.rwg[k] = wg[j], b.rwb[k] = wb[j];
+    }
+}
+
+/// The emitter samples of the `count` rough lanes listed in `lanes`, after the vector stage
+/// evaluated them as a diffuse BSDF's: the BSDF towards each (rough_eval with Terms GGX or
+/// Beckmann, as the scalar path evaluates it), its MIS weight and contribution, and whether
+/// it stands (the vector stage's tests and f not null), into the c* and shadow columns.
+template <Microfacet Terms>
+void rough_emitter_stage(Batch &b, int *lanes, int count, const WavefrontScene &ws, float bsdf_mis) {
+    static_assert(Terms == Microfacet::GGX || Terms == Microfacet::Beckmann, "a distribution's own terms");
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *radiance = ws.radiance.data(), *tables = ws.tables.data();
-    // The lanes' inputs, packed (one lane at a time: GCC does not vectorise gathers whose
-    // index is itself gathered), then evaluated in SIMD lanes.
     alignas(64) int mat[B], light[B];
     alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], nwx[B], nwy[B], nwz[B];
     alignas(64) float espdf[B], sampled0[B], obr[B], obg[B], obb[B];
     // (A light sampled aside: its sample's weight and whether it is a delta one, else zeros.)
     alignas(64) float aside[B], awr[B], awg[B], awb[B], adelta[B];
-    for (int j = 0; j < count; ++j) {
+    const int padded = pad_list(lanes, count);
+    for (int j = 0; j < padded; ++j) {
         const int k = lanes[j];
         mat[j] = b.mat[k], light[j] = b.light[k];
         ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
         wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
         nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
         espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k], obr[j] = b.obr[k], obg[j] = b.obg[k], obb[j] = b.obb[k];
-        const bool a = ws.any_aside_lights && ws.lights[size_t(b.light[k])].aside != 0.f;
+    }
+    for (int j = 0; j < padded; ++j) {
+        const int k = lanes[j];
+        const bool a = ws.any_aside_lights && ws.lights[size_t(light[j])].aside != 0.f;
         aside[j] = a ? 1.f : 0.f;
         awr[j] = a ? b.awr[k] : 0.f, awg[j] = a ? b.awg[k] : 0.f, awb[j] = a ? b.awb[k] : 0.f;
         adelta[j] = a ? b.adelta[k] : 0.f;
     }
     alignas(64) float cr[B], cg[B], cb[B], sampled[B];
 #pragma GCC ivdep
-    for (int j = 0; j < count; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const WavefrontScene::Material &m = mats[mat[j]];
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
         Vec3 wi{wix[j], wiy[j], wiz[j]};
@@ -1009,7 +1041,7 @@ void beckmann_emitter_stage(Batch &b, const int *lanes, int count, const Wavefro
         side = m.twosided != 0 ? side : 1.f;
         wi.z = wi.z * side;
         const Vec3 wo{nwx[j], nwy[j], nwz[j]};
-        RoughEval e = rough_eval<Microfacet::Beckmann>(m, m.plastic, 1.f, MicrofacetTerms{}, tables, wi, wo, a, s);
+        RoughEval e = rough_eval<Terms>(m, MicrofacetTerms{}, tables, wi, wo, a, s);
         float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
         sampled[j] = f_sum != 0.f ? sampled0[j] : 0.f;
         // (The emitter sample's weight and MIS weight, as the vector stage computed them.)
@@ -1065,9 +1097,9 @@ struct BeckmannSearches {
     }
 };
 
-/// The visible normals of the Beckmann lanes' BSDF samples, before the vector stage, and
+/// The visible normals of the Beckmann lanes' BSDF samples, before rough_sample_stage, and
 /// the microfacet terms towards the sampled direction: from the BSDF sample's numbers
-/// (draw_stage's), in the frame the vector stage samples in (twosided's flip), with a normal
+/// (draw_stage's), in the frame the vertex stage samples in (twosided's flip), with a normal
 /// where the sample takes one (a conductor's; a roughplastic's where u1 picks the specular
 /// lobe). The lanes are listed and packed one at a time; the rest runs in SIMD lanes over
 /// them (BeckmannSlopes' operations, so the normals are VisibleNormalSampler's bit for bit): the
@@ -1076,7 +1108,8 @@ struct BeckmannSearches {
 /// number.
 int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     constexpr int B = WavefrontBatch;
-    // The Beckmann lanes listed (their microfacet columns cleared for the others' selects).
+    // The Beckmann lanes listed (their microfacet columns cleared: rough_sample_stage reads
+    // them where wi is below the surface too).
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
     alignas(64) int flag[B];
@@ -1101,7 +1134,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     alignas(64) int sampling[B];
     const int m = simd::select_indices(flag, count, 1, sampling);
     // Their lane, wi, alpha, u1 and u2 and whether the sample is the plastic's diffuse base
-    // (1: no normal; the vector stage's choice of lobe), packed first.
+    // (1: no normal; rough_sample_stage's choice of lobe), packed first.
     alignas(64) int lane[B], mat[B];
     alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B], u1s[B];
     for (int j = 0; j < m; ++j) {
@@ -1546,7 +1579,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // after every call they make: 46 such calls in this function, 28 in beckmann_stage.)
     struct Buffers {
         Batch batch, side;
-        int side_lane[B], beckmann_lane[B];
+        int side_lane[B], beckmann_lane[B], ggx_lane[B];
         /// The samplers other than `independent` of samples [0, n_samples), beyond their
         /// streams (see load_sampler()).
         std::vector<Sampler::Parts> parts;
@@ -1558,6 +1591,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     if (ws.predrawn && buffers.parts.size() < size_t(n_samples)) buffers.parts.resize(size_t(n_samples));
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
     int *const side_lane = buffers.side_lane, *const beckmann_lane = buffers.beckmann_lane;
+    int *const ggx_lane = buffers.ggx_lane;
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
@@ -1762,14 +1796,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.mat[k] = shape.bsdf;
             b.shade[k] = 1;
         }
-        // Shade the other vertices in lanes (Beckmann's visible normals first); then the
-        // vertices shaded aside return.
+        // Shade the other vertices in lanes (the rough ones' BSDF samples first, Beckmann's
+        // visible normals before those; their emitter samples after); then the vertices
+        // shaded aside return.
         draw_stage(b, n, ws, cfg, camera.sampler, parts);
         const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
+        const int n_ggx = ws.any_ggx ? list_ggx_lanes(b, n, ws, ggx_lane) : 0;
+        if (n_ggx > 0) rough_sample_stage<Microfacet::GGX>(b, ggx_lane, n_ggx, ws);
+        if (n_beckmann > 0) rough_sample_stage<Microfacet::StoredOnly>(b, beckmann_lane, n_beckmann, ws);
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
-        if (n_beckmann > 0) beckmann_emitter_stage(b, beckmann_lane, n_beckmann, ws, cfg.bsdf_sampling ? 1.f : 0.f);
+        const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
+        if (n_ggx > 0) rough_emitter_stage<Microfacet::GGX>(b, ggx_lane, n_ggx, ws, bsdf_mis);
+        if (n_beckmann > 0) rough_emitter_stage<Microfacet::Beckmann>(b, beckmann_lane, n_beckmann, ws, bsdf_mis);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
             for (int k = 0; ws.any_delta && k < n; ++k) {

@@ -273,13 +273,13 @@ def test04_cornell_box_takes_the_wavefront(monkeypatch):
                "bsdf": {"type": "dielectric"}},
      "bulb": {"type": "sphere", "radius": 0.05, "to_world": tr.Transform.translate([0.0, 0.8, 0.3]),
               "emitter": {"type": "area", "radiance": 20.0}}},
-], ids=["mirror", "glass", "textured delta", "ggx", "beckmann", "all kinds", "beckmann aside"])
+], ids=["mirror", "glass", "textured delta", "ggx", "beckmann", "all kinds", "all kinds, two lights"])
 def test05_every_bsdf_gives_path_li_image(tmp_path, monkeypatch, extra):
     # Mirrors, dielectrics (index-matched too, textured, twosided) and rough BSDFs (GGX's
-    # and Beckmann's, whose visible normals are sampled one path at a time first) are shaded
-    # in lanes with the diffuse vertices; Beckmann's by path_vertex() in the shade stage
-    # where the scene has several lights, one of them a sphere, and delta BSDFs ("beckmann
-    # aside"). Either way the image is path_li's.
+    # and Beckmann's, whose visible normals are sampled in lanes first) are shaded in lanes
+    # with the diffuse vertices, the rough ones in stages over their lists of lanes, also
+    # where the scene has several lights, one of them a sphere, and delta BSDFs ("all kinds,
+    # two lights"). The image is path_li's.
     scene = room(tmp_path, {"max_depth": 6}, **extra)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=4)
     assert torch.equal(wavefront, scalar)
@@ -626,11 +626,10 @@ def test21_emitters_sampled_aside(tmp_path, monkeypatch, lights, integrator):
     # Emitters the vector stage does not sample itself (a point light, an area light on a
     # cube's 12 triangles or on a disk) take the wavefront: emitter_sample() samples them one
     # lane at a time (aside_emitter_stage), the vector stage evaluates the BSDF, the MIS weight
-    # (none for a point light's delta sample) and the shadow ray; Beckmann lanes redo it in
-    # beckmann_emitter_stage. The image is path_li's bit for bit, with one light or several,
-    # beside the sky, mirrors, GGX and Beckmann (in lanes; shaded aside where a mirror and
-    # several lights, one without a mesh, leave no instance for it); the lights' emission
-    # and a reflectance are differentiated in lanes with the tape's gradients. `direct` (path
+    # (none for a point light's delta sample) and the shadow ray; rough lanes redo it in
+    # rough_emitter_stage. The image is path_li's bit for bit, with one light or several,
+    # beside the sky, mirrors, GGX and Beckmann (in lanes); the lights' emission and a
+    # reflectance are differentiated in lanes with the tape's gradients. `direct` (path
     # tracing's first vertex) likewise gives direct_li's image.
     d = room_dict(tmp_path, {"type": integrator} if integrator == "direct" else None)
     light = "lamp.intensity.value"
@@ -667,7 +666,7 @@ def test21_emitters_sampled_aside(tmp_path, monkeypatch, lights, integrator):
     without = {k: v for k, v in d.items() if k not in ("lamp", "box", "disk")}
     if lights not in ("point light alone", "point light and Beckmann"):
         assert not torch.equal(tr.render(tr.load_dict(without), spp=7, seed=5), wavefront)
-    if integrator == "path" and lights != "point light, sky, delta and rough BSDFs":  # (a Beckmann vertex aside: the tape)
+    if integrator == "path":
         assert_lanes_give_the_tapes_gradients(scene, [light, "floor.bsdf.reflectance.value"], monkeypatch)
 
 
