@@ -1143,9 +1143,10 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
             float reach = radius + 1e-3f * (radius + norm(oc));
             near[k] = squared_norm(closest) > reach * reach ? 0 : 1;
         }
-        // The near rays listed, tested in lanes, their hits kept in order.
+        // The near rays listed, tested in lanes (the list padded to whole vectors), their
+        // hits kept in order.
         const int m = simd::select_indices(near, n, 1, near_list);
-        flat_sphere(s.center, s.radius, r, near_list, m, sphere_t, sphere_hit);
+        flat_sphere(s.center, s.radius, r, near_list, simd::pad_indices(near_list, m), sphere_t, sphere_hit);
         for (int j = 0; j < m; ++j) {
             if (sphere_hit[j] == 0.f) continue;
             const int k = near_list[j];

@@ -82,4 +82,15 @@ inline int select_indices(const int *values, int n, int value, int *list) {
     return m;
 }
 
+/// The length of a list of `count` indices rounded up to whole vectors of 16 lanes, its
+/// entries from `count` on repeating its last one (the list must hold that many): loops over
+/// a list run to that length and ignore the results beyond `count`, so that they end
+/// without the remainder GCC runs one lane at a time after a vectorised loop (which for a
+/// long loop body costs about as much as the vectors).
+inline int pad_indices(int *list, int count) {
+    const int padded = (count + 15) & ~15;
+    for (int j = count; j < padded; ++j) list[j] = list[count - 1];
+    return padded;
+}
+
 }  // namespace rbpt::simd

@@ -922,7 +922,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 /// rough lanes are a third of its vertices: 459-460 -> 448-450 ms). A new BSDF with costly
 /// terms takes stages of its own in this pattern. The lanes' inputs are packed one lane at a
 /// time (gathers in lanes were no faster) and their results moved back so; the rest runs in
-/// SIMD lanes over the list, padded to whole vectors (pad_list).
+/// SIMD lanes over the list, padded to whole vectors (simd::pad_indices).
 
 /// The lanes [0, n) shaded by a rough BSDF of GGX's distribution, listed in `lanes`; returns
 /// their number.
@@ -936,15 +936,6 @@ int list_ggx_lanes(const Batch &b, int n, const WavefrontScene &ws, int *lanes) 
         flag[k] = m.rough * (1.f - m.beckmann) * shade != 0.f ? 1 : 0;
     }
     return simd::select_indices(flag, n, 1, lanes);
-}
-
-/// The length of a list of `count` lanes (count > 0) rounded up to whole vectors of 16, its
-/// entries from `count` on repeating its last lane: the loops over a list run over that
-/// length, without the lane-by-lane remainder GCC adds after a vectorised loop.
-RBPT_INLINE int pad_list(int *lanes, int count) {
-    const int padded = (count + 15) & ~15;
-    for (int j = count; j < padded; ++j) lanes[j] = lanes[count - 1];
-    return padded;
 }
 
 /// The BSDF samples of the `count` rough lanes listed in `lanes`, before the vector stage,
@@ -962,7 +953,7 @@ void rough_sample_stage(Batch &b, int *lanes, int count, const WavefrontScene &w
     alignas(64) int mat[B];
     alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], u1s[B], ux[B], uy[B];
     alignas(64) float mx[B], my[B], mz[B], D[B], g_i[B], g_o[B];
-    const int padded = pad_list(lanes, count);
+    const int padded = simd::pad_indices(lanes, count);
     for (int j = 0; j < padded; ++j) {
         const int k = lanes[j];
         mat[j] = b.mat[k];
@@ -1015,7 +1006,7 @@ void rough_emitter_stage(Batch &b, int *lanes, int count, const WavefrontScene &
     alignas(64) float espdf[B], sampled0[B], obr[B], obg[B], obb[B];
     // (A light sampled aside: its sample's weight and whether it is a delta one, else zeros.)
     alignas(64) float aside[B], awr[B], awg[B], awb[B], adelta[B];
-    const int padded = pad_list(lanes, count);
+    const int padded = simd::pad_indices(lanes, count);
     for (int j = 0; j < padded; ++j) {
         const int k = lanes[j];
         mat[j] = b.mat[k], light[j] = b.light[k];
@@ -1133,18 +1124,19 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     }
     alignas(64) int sampling[B];
     const int m = simd::select_indices(flag, count, 1, sampling);
+    const int padded = simd::pad_indices(sampling, m);  // (the loops below run to it)
     // Their lane, wi, alpha, u1 and u2 and whether the sample is the plastic's diffuse base
     // (1: no normal; rough_sample_stage's choice of lobe), packed first.
     alignas(64) int lane[B], mat[B];
     alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B], u1s[B];
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const int k = lanes[sampling[j]];
         lane[j] = k, mat[j] = b.mat[k];
         wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = flipped_wz[sampling[j]];
         u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
     }
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
         const float u1 = u1s[j];
         const float t_i = transmittance(tables, material.table, wz[j]);
@@ -1157,7 +1149,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], normalization[B];
     alignas(64) float sa[B], sb[B], sc[B], s_inv[B], s_u1[B], s_done[B];
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const BeckmannSlopes slopes(normalize(Vec3{alpha[j] * wx[j], alpha[j] * wy[j], wz[j]}));
         const BeckmannSlopes::Search s = slopes.start(ux[j]);
         cos_phi[j] = slopes.cos_phi, sin_phi[j] = slopes.sin_phi, polar[j] = slopes.polar;
@@ -1170,7 +1162,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     BeckmannSearches searches{tan_i, normalization, sa, sb, sc, s_inv, s_u1, s_done};
     constexpr int LaneSteps = 4;
     int steps = 0;
-    while (steps < LaneSteps && searches.step(m) > 0.f) ++steps;
+    while (steps < LaneSteps && searches.step(padded) > 0.f) ++steps;
     for (int j = 0; steps == LaneSteps && j < m; ++j) {
         BeckmannSlopes::Search s = searches.load(j);
         for (int it = LaneSteps; it < BeckmannSlopes::MaxSteps && s.converged == 0.f; ++it) searches.slopes(j).step(s);
@@ -1180,7 +1172,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     // directions.
     alignas(64) float nx[B], ny[B], nz[B], ox[B], oy[B], oz[B];
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         BeckmannSlopes slopes;
         slopes.cos_phi = cos_phi[j], slopes.sin_phi = sin_phi[j], slopes.polar = polar[j];
         const BeckmannSlopes::Search s{sa[j], sb[j], sc[j], s_inv[j], s_u1[j], s_done[j]};
@@ -1201,7 +1193,7 @@ int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
     // The microfacet terms towards them.
     alignas(64) float D[B], g_i[B], g_o[B];
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const MicrofacetTerms t = beckmann_terms(alpha[j], {wx[j], wy[j], wz[j]}, {ox[j], oy[j], oz[j]});
         D[j] = t.D, g_i[j] = t.g_i, g_o[j] = t.g;
     }
@@ -1362,10 +1354,10 @@ RBPT_INLINE void store_interaction(Batch &b, int k, const Vec3 &p, const Vec3 &p
 /// sphere), in SIMD lanes over the list: the hit re-projected onto the sphere in double
 /// precision, its normal, and with UV its uv where a texture reads it (spherical coordinates
 /// in the sphere's frame, from atan2_poly and acos_full as Geometry::interaction's). The rays are
-/// packed and the results computed into packed columns, then moved to the lanes one at a
-/// time (AVX2 has no scatter).
+/// packed and the results computed into packed columns (the list padded to whole vectors),
+/// then moved to the lanes one at a time (AVX2 has no scatter).
 template <bool UV>
-void sphere_interactions(Batch &b, const int *list, int m, uint32_t n_triangles, const WavefrontScene &ws) {
+void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const WavefrontScene &ws) {
     constexpr int B = WavefrontBatch;
     const Vec3 *centers = ws.sphere_center.data();
     const Vec3 *sphere_x = ws.sphere_x.data(), *sphere_y = ws.sphere_y.data(), *sphere_z = ws.sphere_z.data();
@@ -1374,14 +1366,15 @@ void sphere_interactions(Batch &b, const int *list, int m, uint32_t n_triangles,
     // The listed lanes' rays and spheres, packed.
     alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], ht[B];
     alignas(64) int sphere[B];
-    for (int j = 0; j < m; ++j) {
+    const int padded = simd::pad_indices(list, m);
+    for (int j = 0; j < padded; ++j) {
         const int k = list[j];
         ox[j] = b.ox[k], oy[j] = b.oy[k], oz[j] = b.oz[k], dx[j] = b.dx[k], dy[j] = b.dy[k], dz[j] = b.dz[k];
         ht[j] = b.ht[k], sphere[j] = int(b.prim[k] - n_triangles);
     }
     alignas(64) float px[B], py[B], pz[B], ex[B], ey[B], ez[B], nx[B], ny[B], nz[B], su[B], sv[B];
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
+    for (int j = 0; j < padded; ++j) {
         const int a = sphere[j];
         const float radius = radii[a];
         const Vec3 c{centers[a].x, centers[a].y, centers[a].z};
