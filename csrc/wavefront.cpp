@@ -256,9 +256,9 @@ struct alignas(64) Batch {
     // A Beckmann lane's visible normal for its BSDF sample, and the microfacet terms
     // towards the sample (beckmann_stage).
     float bmx[B], bmy[B], bmz[B], bD[B], bgi[B], bgo[B];
-    // A rough lane's emitter sample's density, the throughput before the vertex, and whether
-    // the sample stands before the BSDF's test (rough_emitter_stage).
-    float espdf[B], obr[B], obg[B], obb[B], sampled0[B];
+    // A rough lane's emitter sample's density, and whether the sample stands before the
+    // BSDF's test (rough_emitter_stage).
+    float espdf[B], sampled0[B];
     float sox[B], soy[B], soz[B], sdx[B], sdy[B], sdz[B], stmax[B];
     float cr[B], cg[B], cb[B];
     // The emitter samples of lights sampled aside (aside_emitter_stage): direction, point,
@@ -703,8 +703,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         if constexpr (Rough) {
             // (What rough_emitter_stage needs to redo this for the rough lanes.)
             b.nwx[k] = wo.x, b.nwy[k] = wo.y, b.nwz[k] = wo.z;
-            b.espdf[k] = es_pdf;
-            b.obr[k] = b.br[k], b.obg[k] = b.bg[k], b.obb[k] = b.bb[k], b.sampled0[k] = sampled;
+            b.espdf[k] = es_pdf, b.sampled0[k] = sampled;
         }
         // f is not null: a sum of magnitudes is zero exactly when all are (a channelwise test
         // of f, which was selected, would again become a boolean select).
@@ -938,27 +937,39 @@ int list_ggx_lanes(const Batch &b, int n, const WavefrontScene &ws, int *lanes) 
     return simd::select_indices(flag, n, 1, lanes);
 }
 
-/// The BSDF samples of the `count` rough lanes listed in `lanes`, before the vector stage,
-/// from its numbers (draw_stage's), in its frame (twosided's flip): the reflection about a
-/// visible normal (GGX's, sampled here; with Terms StoredOnly Beckmann's, beckmann_stage's,
-/// with its microfacet terms) or, for a roughplastic where u1 picks its base, the
-/// cosine-weighted direction; its density (zero where wi is below the surface) and its
-/// weight value / density, into the swx.., rpdf and rw* columns.
+/// A list of rough lanes and the inputs its two stages share, packed by rough_sample_stage
+/// before the vector stage (which changes none of them but the throughput, packed as it was
+/// before the vertex) and read again by rough_emitter_stage after it.
+struct RoughLanes {
+    int count = 0, padded = 0;  ///< the lanes, and the list's length padded to whole vectors
+    alignas(64) int lanes[B], mat[B];
+    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], br[B], bg[B], bb[B];
+};
+
+/// The BSDF samples of the rough lanes listed in `r`, before the vector stage, from its
+/// numbers (draw_stage's), in its frame (twosided's flip): the reflection about a visible
+/// normal (GGX's, sampled here; with Terms StoredOnly Beckmann's, beckmann_stage's, with its
+/// microfacet terms) or, for a roughplastic where u1 picks its base, the cosine-weighted
+/// direction; its density (zero where wi is below the surface) and its weight value /
+/// density, into the swx.., rpdf and rw* columns.
 template <Microfacet Terms>
-void rough_sample_stage(Batch &b, int *lanes, int count, const WavefrontScene &ws) {
+void rough_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
     static_assert(Terms == Microfacet::GGX || Terms == Microfacet::StoredOnly, "GGX's normals, or beckmann_stage's");
     constexpr bool Stored = Terms == Microfacet::StoredOnly;
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
-    alignas(64) int mat[B];
-    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], u1s[B], ux[B], uy[B];
-    alignas(64) float mx[B], my[B], mz[B], D[B], g_i[B], g_o[B];
-    const int padded = simd::pad_indices(lanes, count);
+    const int *lanes = r.lanes;
+    r.padded = simd::pad_indices(r.lanes, r.count);
+    const int padded = r.padded;
+    int *mat = r.mat;
+    float *ar = r.ar, *ag = r.ag, *ab = r.ab, *tr = r.tr, *tg = r.tg, *tb = r.tb, *wix = r.wix, *wiy = r.wiy, *wiz = r.wiz;
+    alignas(64) float u1s[B], ux[B], uy[B], mx[B], my[B], mz[B], D[B], g_i[B], g_o[B];
     for (int j = 0; j < padded; ++j) {
         const int k = lanes[j];
         mat[j] = b.mat[k];
         ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
         wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
+        r.br[j] = b.br[k], r.bg[j] = b.bg[k], r.bb[j] = b.bb[k];
         u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
         if constexpr (Stored) {
             mx[j] = b.bmx[k], my[j] = b.bmy[k], mz[j] = b.bmz[k];
@@ -985,39 +996,40 @@ void rough_sample_stage(Batch &b, int *lanes, int count, const WavefrontScene &w
         pdf[j] = wi.z > 0.f ? e.pdf : 0.f;
         wr[j] = e.r / e.pdf, wg[j] = e.g / e.pdf, wb[j] = e.b / e.pdf;
     }
-    for (int j = 0; j < count; ++j) {
+    for (int j = 0; j < r.count; ++j) {
         const int k = lanes[j];
         b.swx[k] = ox[j], b.swy[k] = oy[j], b.swz[k] = oz[j];
         b.rpdf[k] = pdf[j], b.rwr[k] = wr[j], b.rwg[k] = wg[j], b.rwb[k] = wb[j];
     }
 }
 
-/// The emitter samples of the `count` rough lanes listed in `lanes`, after the vector stage
-/// evaluated them as a diffuse BSDF's: the BSDF towards each (rough_eval with Terms GGX or
-/// Beckmann, as the scalar path evaluates it), its MIS weight and contribution, and whether
-/// it stands (the vector stage's tests and f not null), into the c* and shadow columns.
-template <Microfacet Terms>
-void rough_emitter_stage(Batch &b, int *lanes, int count, const WavefrontScene &ws, float bsdf_mis) {
+/// The emitter samples of the rough lanes listed in `r` (rough_sample_stage's), after the
+/// vector stage evaluated them as a diffuse BSDF's: the BSDF towards each (rough_eval with
+/// Terms GGX or Beckmann, as the scalar path evaluates it), its MIS weight and contribution,
+/// and whether it stands (the vector stage's tests and f not null), into the c* and shadow
+/// columns. Aside: whether some lights are sampled aside (their samples' weights and deltas).
+template <Microfacet Terms, bool Aside>
+void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws, float bsdf_mis) {
     static_assert(Terms == Microfacet::GGX || Terms == Microfacet::Beckmann, "a distribution's own terms");
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *radiance = ws.radiance.data(), *tables = ws.tables.data();
-    alignas(64) int mat[B], light[B];
-    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], nwx[B], nwy[B], nwz[B];
-    alignas(64) float espdf[B], sampled0[B], obr[B], obg[B], obb[B];
+    const int *lanes = r.lanes, *mat = r.mat;
+    const float *ar = r.ar, *ag = r.ag, *ab = r.ab, *tr = r.tr, *tg = r.tg, *tb = r.tb, *wix = r.wix, *wiy = r.wiy, *wiz = r.wiz;
+    const float *obr = r.br, *obg = r.bg, *obb = r.bb;
+    const int padded = r.padded;
+    alignas(64) int light[B];
+    alignas(64) float nwx[B], nwy[B], nwz[B], espdf[B], sampled0[B];
+    for (int j = 0; j < padded; ++j) {
+        const int k = lanes[j];
+        light[j] = b.light[k];
+        nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
+        espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k];
+    }
     // (A light sampled aside: its sample's weight and whether it is a delta one, else zeros.)
     alignas(64) float aside[B], awr[B], awg[B], awb[B], adelta[B];
-    const int padded = simd::pad_indices(lanes, count);
-    for (int j = 0; j < padded; ++j) {
+    for (int j = 0; Aside && j < padded; ++j) {
         const int k = lanes[j];
-        mat[j] = b.mat[k], light[j] = b.light[k];
-        ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
-        wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
-        nwx[j] = b.nwx[k], nwy[j] = b.nwy[k], nwz[j] = b.nwz[k];
-        espdf[j] = b.espdf[k], sampled0[j] = b.sampled0[k], obr[j] = b.obr[k], obg[j] = b.obg[k], obb[j] = b.obb[k];
-    }
-    for (int j = 0; j < padded; ++j) {
-        const int k = lanes[j];
-        const bool a = ws.any_aside_lights && ws.lights[size_t(light[j])].aside != 0.f;
+        const bool a = ws.lights[size_t(light[j])].aside != 0.f;
         aside[j] = a ? 1.f : 0.f;
         awr[j] = a ? b.awr[k] : 0.f, awg[j] = a ? b.awg[k] : 0.f, awb[j] = a ? b.awb[k] : 0.f;
         adelta[j] = a ? b.adelta[k] : 0.f;
@@ -1040,20 +1052,29 @@ void rough_emitter_stage(Batch &b, int *lanes, int count, const WavefrontScene &
         const float inv_pdf = 1.f / espdf[j];
         // (The radiance gathered before the selects: gathers under a condition are masked
         // gathers, which GCC does not emit for AVX2.)
-        const float er = radiance[l] * inv_pdf, eg = radiance[l + 1] * inv_pdf, eb = radiance[l + 2] * inv_pdf;
-        const float ew[3] = {aside[j] != 0.f ? awr[j] : er, aside[j] != 0.f ? awg[j] : eg,
-                             aside[j] != 0.f ? awb[j] : eb};
+        float ew[3] = {radiance[l] * inv_pdf, radiance[l + 1] * inv_pdf, radiance[l + 2] * inv_pdf};
         float w = mis_weight(espdf[j], e.pdf * bsdf_mis);
-        w = adelta[j] != 0.f ? 1.f : w;
+        if constexpr (Aside) {
+            ew[0] = aside[j] != 0.f ? awr[j] : ew[0], ew[1] = aside[j] != 0.f ? awg[j] : ew[1];
+            ew[2] = aside[j] != 0.f ? awb[j] : ew[2];
+            w = adelta[j] != 0.f ? 1.f : w;
+        }
         cr[j] = obr[j] * e.r * ew[0] * w;
         cg[j] = obg[j] * e.g * ew[1] * w;
         cb[j] = obb[j] * e.b * ew[2] * w;
     }
-    for (int j = 0; j < count; ++j) {
+    for (int j = 0; j < r.count; ++j) {
         const int k = lanes[j];
         b.cr[k] = cr[j], b.cg[k] = cg[j], b.cb[k] = cb[j];
         b.shadow[k] = sampled[j] != 0.f ? 1 : 0;
     }
+}
+
+/// rough_emitter_stage for a scene with or without lights sampled aside.
+template <Microfacet Terms>
+void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws, float bsdf_mis) {
+    if (ws.any_aside_lights) rough_emitter_stage<Terms, true>(b, r, ws, bsdf_mis);
+    else rough_emitter_stage<Terms, false>(b, r, ws, bsdf_mis);
 }
 
 /// beckmann_stage's Newton searches, lane j's state and constants in column j.
@@ -1572,7 +1593,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // after every call they make: 46 such calls in this function, 28 in beckmann_stage.)
     struct Buffers {
         Batch batch, side;
-        int side_lane[B], beckmann_lane[B], ggx_lane[B];
+        int side_lane[B];
+        RoughLanes ggx, beckmann;  ///< the rough lanes of each distribution
         /// The samplers other than `independent` of samples [0, n_samples), beyond their
         /// streams (see load_sampler()).
         std::vector<Sampler::Parts> parts;
@@ -1583,8 +1605,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     Batch &b = buffers.batch, &side = buffers.side;
     if (ws.predrawn && buffers.parts.size() < size_t(n_samples)) buffers.parts.resize(size_t(n_samples));
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
-    int *const side_lane = buffers.side_lane, *const beckmann_lane = buffers.beckmann_lane;
-    int *const ggx_lane = buffers.ggx_lane;
+    int *const side_lane = buffers.side_lane;
+    RoughLanes &ggx = buffers.ggx, &beckmann = buffers.beckmann;
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
@@ -1793,16 +1815,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // visible normals before those; their emitter samples after); then the vertices
         // shaded aside return.
         draw_stage(b, n, ws, cfg, camera.sampler, parts);
-        const int n_beckmann = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann_lane) : 0;
-        const int n_ggx = ws.any_ggx ? list_ggx_lanes(b, n, ws, ggx_lane) : 0;
-        if (n_ggx > 0) rough_sample_stage<Microfacet::GGX>(b, ggx_lane, n_ggx, ws);
-        if (n_beckmann > 0) rough_sample_stage<Microfacet::StoredOnly>(b, beckmann_lane, n_beckmann, ws);
+        beckmann.count = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann.lanes) : 0;
+        ggx.count = ws.any_ggx ? list_ggx_lanes(b, n, ws, ggx.lanes) : 0;
+        if (ggx.count > 0) rough_sample_stage<Microfacet::GGX>(b, ggx, ws);
+        if (beckmann.count > 0) rough_sample_stage<Microfacet::StoredOnly>(b, beckmann, ws);
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
-        if (n_ggx > 0) rough_emitter_stage<Microfacet::GGX>(b, ggx_lane, n_ggx, ws, bsdf_mis);
-        if (n_beckmann > 0) rough_emitter_stage<Microfacet::Beckmann>(b, beckmann_lane, n_beckmann, ws, bsdf_mis);
+        if (ggx.count > 0) rough_emitter_stage<Microfacet::GGX>(b, ggx, ws, bsdf_mis);
+        if (beckmann.count > 0) rough_emitter_stage<Microfacet::Beckmann>(b, beckmann, ws, bsdf_mis);
         if (log) {
             // A dielectric's vertex keeps the input of the branch it sampled.
             for (int k = 0; ws.any_delta && k < n; ++k) {
