@@ -149,7 +149,7 @@ RBPT_INLINE float erfinv(float x) {
 /// slope with a safeguarded Newton search until it is within 1e-6 of u.x (two steps for most
 /// samples; Mitsuba stops after three steps whatever the residual). Inline and without libm
 /// (log_poly, exp_poly, erfc_poly, erfinv), so that the wavefront runs it lane by lane with
-/// the operations of VisibleNormalSampler, which uses it (beckmann_stage).
+/// the operations of VisibleNormalSampler, which uses it (beckmann_sample_stage).
 struct BeckmannSlopes {
     static constexpr float InvSqrtPi = 0.56418958354775628f;
     float cos_phi = 1.f, sin_phi = 0.f;

@@ -251,11 +251,8 @@ struct alignas(64) Batch {
     int record_rough[B];  ///< a differentiated roughness's WavefrontVertex entry, or -1
     // The rough BSDFs' directions, in the frame the vertex stage evaluates them in (twosided's
     // flip applied): towards the emitter sample (the vertex stage's), and the BSDF sample
-    // (rough_sample_stage's) with its density and its weight value / density.
+    // (rough_samples()') with its density and its weight value / density.
     float nwx[B], nwy[B], nwz[B], swx[B], swy[B], swz[B], rpdf[B], rwr[B], rwg[B], rwb[B];
-    // A Beckmann lane's visible normal for its BSDF sample, and the microfacet terms
-    // towards the sample (beckmann_stage).
-    float bmx[B], bmy[B], bmz[B], bD[B], bgi[B], bgo[B];
     // A rough lane's emitter sample's density, and whether the sample stands before the
     // BSDF's test (rough_emitter_stage).
     float espdf[B], sampled0[B];
@@ -431,7 +428,7 @@ RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Ve
 
 /// A rough BSDF's value and density towards wo, with the microfacet terms Terms: GGX's
 /// (Microfacet::GGX), Beckmann's (Microfacet::Beckmann), or `stored` (Microfacet::StoredOnly:
-/// beckmann_stage's, towards its sampled direction).
+/// beckmann_sample_stage's, towards its sampled direction).
 enum class Microfacet { GGX, StoredOnly, Beckmann };
 template <Microfacet Terms>
 RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const MicrofacetTerms &stored,
@@ -543,7 +540,7 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// ended. With OneLight (a scene of one emitter, the common case) the light's data is the
 /// same in every lane: loads, not gathers. Delta: whether some lanes are mirrors or
 /// dielectrics (which sample no emitter); Rough: whether some are rough, whose BSDF samples
-/// rough_sample_stage took before (this stage takes them from the rs* columns) and whose
+/// the rough stages took before (this stage takes them from the sw*, rpdf and rw* columns) and whose
 /// emitter samples rough_emitter_stage evaluates after (this stage evaluates them as a
 /// diffuse BSDF's and keeps what that stage needs); NonMesh: whether some emitters have no
 /// mesh (the `constant` environment, spheres: 1), or none has (2, with several lights). The
@@ -763,7 +760,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float wr = refract != 0.f ? s[0] * t2 : a[0], wg = refract != 0.f ? s[1] * t2 : a[1];
         float wb = refract != 0.f ? s[2] * t2 : a[2];
         if constexpr (Rough) {
-            // Rough: rough_sample_stage's sample (in the flipped frame).
+            // Rough: the rough stages' sample (in the flipped frame).
             const Vec3 rwo{b.swx[k], b.swy[k], b.swz[k]};
             bwo = select(rough != 0.f, rwo, bwo);
             bpdf = rough != 0.f ? b.rpdf[k] : bpdf;
@@ -916,12 +913,13 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 
 /// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
 /// (GGX's, or Beckmann's), in stages over the lanes that have them, listed (GGX:
-/// list_ggx_lanes; Beckmann: beckmann_stage), so that the vector stage carries none of their
-/// code and the other lanes pay nothing for it (glossy, whose walls are diffuse and whose
-/// rough lanes are a third of its vertices: 459-460 -> 448-450 ms). A new BSDF with costly
-/// terms takes stages of its own in this pattern. The lanes' inputs are packed one lane at a
-/// time (gathers in lanes were no faster) and their results moved back so; the rest runs in
-/// SIMD lanes over the list, padded to whole vectors (simd::pad_indices).
+/// list_ggx_lanes and ggx_sample_stage; Beckmann: beckmann_sample_stage; then
+/// rough_emitter_stage for either), so that the vector stage carries none of their code and
+/// the other lanes pay nothing for it (glossy, whose walls are diffuse and whose rough lanes
+/// are a third of its vertices: 459-460 -> 448-450 ms). A new BSDF with costly terms takes
+/// stages of its own in this pattern. The lanes' inputs are packed one lane at a time
+/// (gathers in lanes were no faster) and their results moved back so; the rest runs in SIMD
+/// lanes over the list, padded to whole vectors (simd::pad_indices).
 
 /// The lanes [0, n) shaded by a rough BSDF of GGX's distribution, listed in `lanes`; returns
 /// their number.
@@ -937,7 +935,7 @@ int list_ggx_lanes(const Batch &b, int n, const WavefrontScene &ws, int *lanes) 
     return simd::select_indices(flag, n, 1, lanes);
 }
 
-/// A list of rough lanes and the inputs its two stages share, packed by rough_sample_stage
+/// A list of rough lanes and the inputs its two stages share, packed by its sample stage
 /// before the vector stage (which changes none of them but the throughput, packed as it was
 /// before the vertex) and read again by rough_emitter_stage after it.
 struct RoughLanes {
@@ -946,39 +944,38 @@ struct RoughLanes {
     alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], br[B], bg[B], bb[B];
 };
 
-/// The BSDF samples of the rough lanes listed in `r`, before the vector stage, from its
-/// numbers (draw_stage's), in its frame (twosided's flip): the reflection about a visible
-/// normal (GGX's, sampled here; with Terms StoredOnly Beckmann's, beckmann_stage's, with its
-/// microfacet terms) or, for a roughplastic where u1 picks its base, the cosine-weighted
+/// Packs the inputs of the lanes r.lanes[0, r.count) into `r` (the list padded to whole
+/// vectors first), and their BSDF sample's numbers (draw_stage's) into u1s, ux and uy.
+void pack_rough_lanes(const Batch &b, RoughLanes &r, float *u1s, float *ux, float *uy) {
+    r.padded = simd::pad_indices(r.lanes, r.count);
+    for (int j = 0; j < r.padded; ++j) {
+        const int k = r.lanes[j];
+        r.mat[j] = b.mat[k];
+        r.ar[j] = b.ar[k], r.ag[j] = b.ag[k], r.ab[j] = b.ab[k], r.tr[j] = b.tr[k], r.tg[j] = b.tg[k], r.tb[j] = b.tb[k];
+        r.wix[j] = b.wix[k], r.wiy[j] = b.wiy[k], r.wiz[j] = b.wiz[k];
+        r.br[j] = b.br[k], r.bg[j] = b.bg[k], r.bb[j] = b.bb[k];
+        u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
+    }
+}
+
+/// The BSDF samples of the rough lanes packed in `r`, before the vector stage, in its frame
+/// (twosided's flip): the reflection about a visible normal (GGX's, sampled here; with Terms
+/// StoredOnly the one given in mx, my, mz, with the microfacet terms towards the sample in
+/// D, g_i, g_o) or, for a roughplastic where u1 picks its base, the cosine-weighted
 /// direction; its density (zero where wi is below the surface) and its weight value /
 /// density, into the swx.., rpdf and rw* columns.
 template <Microfacet Terms>
-void rough_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
-    static_assert(Terms == Microfacet::GGX || Terms == Microfacet::StoredOnly, "GGX's normals, or beckmann_stage's");
-    constexpr bool Stored = Terms == Microfacet::StoredOnly;
+void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, const float *u1s, const float *ux,
+                   const float *uy, const float *mx, const float *my, const float *mz, const float *D,
+                   const float *g_i, const float *g_o) {
+    static_assert(Terms == Microfacet::GGX || Terms == Microfacet::StoredOnly, "GGX's normals, or given ones");
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
-    const int *lanes = r.lanes;
-    r.padded = simd::pad_indices(r.lanes, r.count);
-    const int padded = r.padded;
-    int *mat = r.mat;
-    float *ar = r.ar, *ag = r.ag, *ab = r.ab, *tr = r.tr, *tg = r.tg, *tb = r.tb, *wix = r.wix, *wiy = r.wiy, *wiz = r.wiz;
-    alignas(64) float u1s[B], ux[B], uy[B], mx[B], my[B], mz[B], D[B], g_i[B], g_o[B];
-    for (int j = 0; j < padded; ++j) {
-        const int k = lanes[j];
-        mat[j] = b.mat[k];
-        ar[j] = b.ar[k], ag[j] = b.ag[k], ab[j] = b.ab[k], tr[j] = b.tr[k], tg[j] = b.tg[k], tb[j] = b.tb[k];
-        wix[j] = b.wix[k], wiy[j] = b.wiy[k], wiz[j] = b.wiz[k];
-        r.br[j] = b.br[k], r.bg[j] = b.bg[k], r.bb[j] = b.bb[k];
-        u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
-        if constexpr (Stored) {
-            mx[j] = b.bmx[k], my[j] = b.bmy[k], mz[j] = b.bmz[k];
-            D[j] = b.bD[k], g_i[j] = b.bgi[k], g_o[j] = b.bgo[k];
-        }
-    }
+    const int *mat = r.mat;
+    const float *ar = r.ar, *ag = r.ag, *ab = r.ab, *tr = r.tr, *tg = r.tg, *tb = r.tb, *wix = r.wix, *wiy = r.wiy, *wiz = r.wiz;
     alignas(64) float ox[B], oy[B], oz[B], pdf[B], wr[B], wg[B], wb[B];
 #pragma GCC ivdep
-    for (int j = 0; j < padded; ++j) {
+    for (int j = 0; j < r.padded; ++j) {
         const WavefrontScene::Material &m = mats[mat[j]];
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
         Vec3 wi{wix[j], wiy[j], wiz[j]};
@@ -987,23 +984,37 @@ void rough_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
         wi.z = wi.z * side;
         const Vec2 u2{ux[j], uy[j]};
         const Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
-        const Vec3 normal = Stored ? Vec3{mx[j], my[j], mz[j]} : ggx_visible_normal(m.alpha, wi, u2);
+        Vec3 normal;
+        MicrofacetTerms terms;
+        if constexpr (Terms == Microfacet::StoredOnly) {
+            normal = Vec3{mx[j], my[j], mz[j]};
+            terms = MicrofacetTerms{D[j], g_i[j], g_o[j]};
+        } else {
+            normal = ggx_visible_normal(m.alpha, wi, u2);
+        }
         const Vec3 specular = reflect(wi, normal);
         const float pick_base = u1s[j] < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : m.plastic;
         const Vec3 wo = select(pick_base != 0.f, cos_wo, specular);
-        const RoughEval e = rough_eval<Terms>(m, MicrofacetTerms{D[j], g_i[j], g_o[j]}, tables, wi, wo, a, s);
+        const RoughEval e = rough_eval<Terms>(m, terms, tables, wi, wo, a, s);
         ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
         pdf[j] = wi.z > 0.f ? e.pdf : 0.f;
         wr[j] = e.r / e.pdf, wg[j] = e.g / e.pdf, wb[j] = e.b / e.pdf;
     }
     for (int j = 0; j < r.count; ++j) {
-        const int k = lanes[j];
+        const int k = r.lanes[j];
         b.swx[k] = ox[j], b.swy[k] = oy[j], b.swz[k] = oz[j];
         b.rpdf[k] = pdf[j], b.rwr[k] = wr[j], b.rwg[k] = wg[j], b.rwb[k] = wb[j];
     }
 }
 
-/// The emitter samples of the rough lanes listed in `r` (rough_sample_stage's), after the
+/// The BSDF samples of the GGX lanes listed in `r` (list_ggx_lanes'), before the vector stage.
+void ggx_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
+    alignas(64) float u1s[B], ux[B], uy[B];
+    pack_rough_lanes(b, r, u1s, ux, uy);
+    rough_samples<Microfacet::GGX>(b, r, ws, u1s, ux, uy, nullptr, nullptr, nullptr, nullptr, nullptr, nullptr);
+}
+
+/// The emitter samples of the rough lanes listed in `r` (by their sample stage), after the
 /// vector stage evaluated them as a diffuse BSDF's: the BSDF towards each (rough_eval with
 /// Terms GGX or Beckmann, as the scalar path evaluates it), its MIS weight and contribution,
 /// and whether it stands (the vector stage's tests and f not null), into the c* and shadow
@@ -1077,7 +1088,7 @@ void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws
     else rough_emitter_stage<Terms, false>(b, r, ws, bsdf_mis);
 }
 
-/// beckmann_stage's Newton searches, lane j's state and constants in column j.
+/// beckmann_sample_stage's Newton searches, lane j's state and constants in column j.
 struct BeckmannSearches {
     float *tan_i, *normalization, *a, *b, *c, *inv_erf, *u1, *done;
     RBPT_INLINE BeckmannSlopes slopes(int j) const {
@@ -1090,7 +1101,7 @@ struct BeckmannSearches {
         a[j] = s.a, b[j] = s.b, c[j] = s.c, inv_erf[j] = s.inv_erf, done[j] = s.converged;
     }
     /// A step of the searches of lanes [0, m); returns how many have not converged. (Not
-    /// inline: inside beckmann_stage's loop over steps GCC does not vectorise it.)
+    /// inline: inside beckmann_sample_stage's loop over steps GCC does not vectorise it.)
     __attribute__((noinline)) float step(int m) const {
         // (The columns as locals: loads through the struct's pointers do not vectorise.)
         const float *q_tan_i = tan_i, *q_normalization = normalization, *q_u1 = u1;
@@ -1109,121 +1120,87 @@ struct BeckmannSearches {
     }
 };
 
-/// The visible normals of the Beckmann lanes' BSDF samples, before rough_sample_stage, and
-/// the microfacet terms towards the sampled direction: from the BSDF sample's numbers
-/// (draw_stage's), in the frame the vertex stage samples in (twosided's flip), with a normal
-/// where the sample takes one (a conductor's; a roughplastic's where u1 picks the specular
-/// lobe). The lanes are listed and packed one at a time; the rest runs in SIMD lanes over
-/// them (BeckmannSlopes' operations, so the normals are VisibleNormalSampler's bit for bit): the
-/// Newton search a step per pass while any lane's continues (most converge in two), its
-/// rare long tails one lane at a time. Lists the Beckmann lanes in `lanes` and returns their
-/// number.
-int beckmann_stage(Batch &b, int n, const WavefrontScene &ws, int *lanes) {
-    constexpr int B = WavefrontBatch;
-    // The Beckmann lanes listed (their microfacet columns cleared: rough_sample_stage reads
-    // them where wi is below the surface too).
+/// The BSDF samples of the Beckmann lanes, listed into `r`, before the vector stage, from the
+/// BSDF sample's numbers (draw_stage's), in the frame the vertex stage samples in (twosided's
+/// flip): the visible normal where the sample takes one (a conductor's; a roughplastic's
+/// where u1 picks the specular lobe) and the microfacet terms towards the sampled direction,
+/// then rough_samples(). In SIMD lanes over the packed list (BeckmannSlopes' operations, so
+/// the normals are VisibleNormalSampler's bit for bit): the Newton search a step per pass
+/// while any lane's continues (most converge in two), its rare long tails one lane at a time.
+/// (Where wi is below the surface there is no sample: those lanes search nothing, and
+/// rough_samples() gives them density zero.)
+void beckmann_sample_stage(Batch &b, int n, const WavefrontScene &ws, RoughLanes &r) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
     alignas(64) int flag[B];
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
-        b.bmx[k] = 0.f, b.bmy[k] = 0.f, b.bmz[k] = 1.f;
-        b.bD[k] = 0.f, b.bgi[k] = 0.f, b.bgo[k] = 0.f;
         const float shade = b.shade[k] != 0 ? 1.f : 0.f;
         flag[k] = mats[b.mat[k]].beckmann * shade != 0.f ? 1 : 0;
     }
-    const int count = simd::select_indices(flag, n, 1, lanes);
-    // Those that sample (wi above the surface, in twosided's flipped frame), listed in turn.
-    alignas(64) float flipped_wz[B];
+    r.count = simd::select_indices(flag, n, 1, r.lanes);
+    if (r.count == 0) return;
+    alignas(64) float u1s[B], ux[B], uy[B];
+    pack_rough_lanes(b, r, u1s, ux, uy);
+    const int m = r.padded, *mat = r.mat;
+    const float *wx = r.wix, *wy = r.wiy, *wiz = r.wiz;
+    // wi's z in the flipped frame, alpha, whether the sample is the plastic's diffuse base (no
+    // normal; rough_samples()' choice of lobe) and whether there is a sample.
+    alignas(64) float wz[B], alpha[B], base[B], below[B];
 #pragma GCC ivdep
-    for (int j = 0; j < count; ++j) {
-        const int k = lanes[j];
-        const float wz = b.wiz[k];
-        const float side = mats[b.mat[k]].twosided != 0 && wz < 0.f ? -1.f : 1.f;
-        flipped_wz[j] = wz * side;
-        flag[j] = flipped_wz[j] > 0.f ? 1 : 0;
-    }
-    alignas(64) int sampling[B];
-    const int m = simd::select_indices(flag, count, 1, sampling);
-    const int padded = simd::pad_indices(sampling, m);  // (the loops below run to it)
-    // Their lane, wi, alpha, u1 and u2 and whether the sample is the plastic's diffuse base
-    // (1: no normal; rough_sample_stage's choice of lobe), packed first.
-    alignas(64) int lane[B], mat[B];
-    alignas(64) float wx[B], wy[B], wz[B], alpha[B], ux[B], uy[B], base[B], u1s[B];
-    for (int j = 0; j < padded; ++j) {
-        const int k = lanes[sampling[j]];
-        lane[j] = k, mat[j] = b.mat[k];
-        wx[j] = b.wix[k], wy[j] = b.wiy[k], wz[j] = flipped_wz[sampling[j]];
-        u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
-    }
-#pragma GCC ivdep
-    for (int j = 0; j < padded; ++j) {
+    for (int j = 0; j < m; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
-        const float u1 = u1s[j];
+        float side = wiz[j] < 0.f ? -1.f : 1.f;
+        side = material.twosided != 0 ? side : 1.f;
+        wz[j] = wiz[j] * side;
         const float t_i = transmittance(tables, material.table, wz[j]);
-        const float specular = u1 < specular_probability(material, t_i) ? 1.f : 0.f;
+        const float specular = u1s[j] < specular_probability(material, t_i) ? 1.f : 0.f;
         alpha[j] = material.alpha;
         base[j] = material.plastic != 0.f && specular == 0.f ? 1.f : 0.f;
+        below[j] = wz[j] > 0.f ? 0.f : 1.f;
     }
-    // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes and the
-    // base's lanes search nothing).
+    // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes, the base's
+    // lanes and those without a sample search nothing).
     alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], normalization[B];
     alignas(64) float sa[B], sb[B], sc[B], s_inv[B], s_u1[B], s_done[B];
 #pragma GCC ivdep
-    for (int j = 0; j < padded; ++j) {
+    for (int j = 0; j < m; ++j) {
         const BeckmannSlopes slopes(normalize(Vec3{alpha[j] * wx[j], alpha[j] * wy[j], wz[j]}));
         const BeckmannSlopes::Search s = slopes.start(ux[j]);
         cos_phi[j] = slopes.cos_phi, sin_phi[j] = slopes.sin_phi, polar[j] = slopes.polar;
         tan_i[j] = slopes.tan_i, normalization[j] = slopes.normalization;
         sa[j] = s.a, sb[j] = s.b, sc[j] = s.c, s_inv[j] = s.inv_erf, s_u1[j] = s.u1;
-        s_done[j] = polar[j] != 0.f || base[j] != 0.f ? 1.f : s.converged;
+        s_done[j] = polar[j] + base[j] + below[j] != 0.f ? 1.f : s.converged;
     }
     // The searches' steps, all lanes at once while any continues (a converged one stays),
     // the rare long tails one lane at a time.
     BeckmannSearches searches{tan_i, normalization, sa, sb, sc, s_inv, s_u1, s_done};
     constexpr int LaneSteps = 4;
     int steps = 0;
-    while (steps < LaneSteps && searches.step(padded) > 0.f) ++steps;
-    for (int j = 0; steps == LaneSteps && j < m; ++j) {
+    while (steps < LaneSteps && searches.step(m) > 0.f) ++steps;
+    for (int j = 0; steps == LaneSteps && j < r.count; ++j) {
         BeckmannSlopes::Search s = searches.load(j);
         for (int it = LaneSteps; it < BeckmannSlopes::MaxSteps && s.converged == 0.f; ++it) searches.slopes(j).step(s);
         searches.store(j, s);
     }
-    // The normals (VisibleNormalSampler::normal of part_x and part_y) and the sampled
-    // directions.
-    alignas(64) float nx[B], ny[B], nz[B], ox[B], oy[B], oz[B];
+    // The normals (VisibleNormalSampler::normal of part_x and part_y; the base's (0, 0, 1))
+    // and the microfacet terms towards the sampled directions (the base's cosine-weighted).
+    alignas(64) float nx[B], ny[B], nz[B], D[B], g_i[B], g_o[B];
 #pragma GCC ivdep
-    for (int j = 0; j < padded; ++j) {
+    for (int j = 0; j < m; ++j) {
         BeckmannSlopes slopes;
         slopes.cos_phi = cos_phi[j], slopes.sin_phi = sin_phi[j], slopes.polar = polar[j];
         const BeckmannSlopes::Search s{sa[j], sb[j], sc[j], s_inv[j], s_u1[j], s_done[j]};
         const float px = polar[j] != 0.f ? slopes.polar_radius(ux[j]) : BeckmannSlopes::slope(s);
         const Vec3 normal = slopes.normal(alpha[j], {px, 0.f}, slopes.part_y(uy[j]));
         const Vec3 wi{wx[j], wy[j], wz[j]};
-        const Vec3 wo = reflect(wi, normal);
         const bool diffuse = base[j] != 0.f;
+        const Vec3 wo = select(diffuse, warp::square_to_cosine_hemisphere({ux[j], uy[j]}), reflect(wi, normal));
         nx[j] = diffuse ? 0.f : normal.x, ny[j] = diffuse ? 0.f : normal.y, nz[j] = diffuse ? 1.f : normal.z;
-        ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
-    }
-    // The base's cosine-weighted directions (one lane at a time: their branches).
-    for (int j = 0; j < m; ++j) {
-        if (base[j] == 0.f) continue;
-        const Vec3 wo = warp::square_to_cosine_hemisphere({ux[j], uy[j]});
-        ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
-    }
-    // The microfacet terms towards them.
-    alignas(64) float D[B], g_i[B], g_o[B];
-#pragma GCC ivdep
-    for (int j = 0; j < padded; ++j) {
-        const MicrofacetTerms t = beckmann_terms(alpha[j], {wx[j], wy[j], wz[j]}, {ox[j], oy[j], oz[j]});
+        const MicrofacetTerms t = beckmann_terms(alpha[j], wi, wo);
         D[j] = t.D, g_i[j] = t.g_i, g_o[j] = t.g;
     }
-    for (int j = 0; j < m; ++j) {
-        const int k = lane[j];
-        b.bmx[k] = nx[j], b.bmy[k] = ny[j], b.bmz[k] = nz[j];
-        b.bD[k] = D[j], b.bgi[k] = g_i[j], b.bgo[k] = g_o[j];
-    }
-    return count;
+    rough_samples<Microfacet::StoredOnly>(b, r, ws, u1s, ux, uy, nx, ny, nz, D, g_i, g_o);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`. (compact_lanes()
@@ -1590,7 +1567,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // each: no stack frame of their own), in a buffer of the thread's, reached through one
     // pointer read here. (Bound to thread_locals directly, the stages that take the batch
     // were specialised to its address, and GCC recomputed that with a call of __tls_get_addr
-    // after every call they make: 46 such calls in this function, 28 in beckmann_stage.)
+    // after every call they make: 46 such calls in this function, 28 in the Beckmann stage.)
     struct Buffers {
         Batch batch, side;
         int side_lane[B];
@@ -1815,10 +1792,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // visible normals before those; their emitter samples after); then the vertices
         // shaded aside return.
         draw_stage(b, n, ws, cfg, camera.sampler, parts);
-        beckmann.count = ws.any_beckmann ? beckmann_stage(b, n, ws, beckmann.lanes) : 0;
         ggx.count = ws.any_ggx ? list_ggx_lanes(b, n, ws, ggx.lanes) : 0;
-        if (ggx.count > 0) rough_sample_stage<Microfacet::GGX>(b, ggx, ws);
-        if (beckmann.count > 0) rough_sample_stage<Microfacet::StoredOnly>(b, beckmann, ws);
+        if (ggx.count > 0) ggx_sample_stage(b, ggx, ws);
+        beckmann.count = 0;
+        if (ws.any_beckmann) beckmann_sample_stage(b, n, ws, beckmann);
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
