@@ -450,6 +450,7 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
     // A small tree of triangles and spheres is also kept flat (intersect_columns()).
     flat_triangles_.clear();
     flat_coords_.clear();
+    flat_prims_.clear();
     flat_spheres_.clear();
     bool flat = nodes_.size() == 1;
     int n_triangles = 0, n_spheres = 0;
@@ -543,11 +544,14 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
         Bounds box;
         for (const FlatTriangle &t : flat_triangles_) box.extend(box_of(t));
         flat_area_ = box.area();
+        for (int a = 0; a < 3; ++a) flat_lo_[a] = box.lo[a], flat_hi_[a] = box.hi[a];
         // The vertices again as columns [vertex][axis][triangle], for flat_rounding_check().
         flat_coords_.resize(9 * n);
         for (size_t i = 0; i < n; ++i)
             for (int j = 0; j < 3; ++j)
                 for (int a = 0; a < 3; ++a) flat_coords_[(3 * j + a) * n + i] = flat_triangles_[i].v[j][a];
+        flat_prims_.resize(n);
+        for (size_t i = 0; i < n; ++i) flat_prims_[i] = flat_triangles_[i].prim;
     }
 }
 
@@ -877,6 +881,7 @@ struct BVH::FlatRays {
     const float *ox, *oy, *oz, *sx, *sy, *sz;
     float *retrace, *best_t, *best_u, *best_v;
     uint32_t *best;  ///< the nearest hit's primitive (or triangle: see flat_triangles())
+    float *best_inv_det;  ///< the nearest hit's 1 / det (deferred tests only)
     const float *rox, *roy, *roz, *inv_x, *inv_y, *inv_z;  ///< the origin as given, 1 / d
     /// A single triangle whose box is smaller is tested chunk by chunk (see flat_triangles()).
     float cull_area;
@@ -896,6 +901,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
     const float *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
     const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
     float *q_retrace = q.retrace, *q_best_t = q.best_t, *q_best_u = q.best_u, *q_best_v = q.best_v;
+    float *q_best_inv_det = q.best_inv_det;
     uint32_t *q_best = q.best;
     float vert[G][3][3];
     uint32_t ids[G];
@@ -933,6 +939,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
         const float tmin = q_tmin[k], tmax = q_tmax[k];
         float retrace = q_retrace[k], best_t = q_best_t[k], best_u = q_best_u[k], best_v = q_best_v[k];
+        float best_inv_det = Deferred ? q_best_inv_det[k] : 0.f;
         uint32_t best = q_best[k];
 #pragma GCC unroll 4
         for (int i = I0; i < I1; ++i) {
@@ -968,9 +975,11 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
             best_u = better != 0.f ? Ve * inv_det : best_u;
             best_v = better != 0.f ? We * inv_det : best_v;
             best = better != 0.f ? ids[i] : best;
+            if constexpr (Deferred) best_inv_det = better != 0.f ? inv_det : best_inv_det;
         }
         q_retrace[k] = retrace, q_best_t[k] = best_t, q_best_u[k] = best_u, q_best_v[k] = best_v;
         q_best[k] = best;
+        if constexpr (Deferred) q_best_inv_det[k] = best_inv_det;
     };
     using First = std::integral_constant<int, 0>;
     using Half = std::integral_constant<int, G / 2>;
@@ -1015,41 +1024,79 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
 /// a hit that passes is the nearest of those that pass; a ray whose nearest hit fails (its
 /// origin on that triangle, within rounding) is marked for intersect(). `best` becomes the
 /// hit's primitive.
+///
+/// Most hits lie far beyond the bound, which a cheaper bound above it shows without the
+/// triangle's vertices: for a hit, whose edge functions share a sign, max |e| / |det| <= 1,
+/// so the bound's terms in max |e| are at most 2 g3 max_zt; the sheared vertices' coordinates
+/// are at most those of the flat triangles' box corners relative to the origin (x: |v_kx -
+/// o_kx| + |sx| |v_kz - o_kz|; z: |sz| |v_kz - o_kz|), and the bound grows with each. That
+/// upper bound, with a margin of 1.001 for the rounding of both (a few ulps), takes each
+/// hit it exceeds; the others are tested exactly, listed.
 void BVH::flat_rounding_check(const FlatRays &q, int n) const {
     const float *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz, *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
+    const float *q_rox = q.rox, *q_roy = q.roy, *q_roz = q.roz, *q_inv_det = q.best_inv_det;
     const int *q_kx = q.kx, *q_ky = q.ky, *q_kz = q.kz;
     float *q_retrace = q.retrace;
     const float *q_best_t = q.best_t;
     uint32_t *q_best = q.best;
     const int stride = int(flat_triangles_.size());
     const float *coords = flat_coords_.data();
+    const float lo0 = flat_lo_[0], lo1 = flat_lo_[1], lo2 = flat_lo_[2];
+    const float hi0 = flat_hi_[0], hi1 = flat_hi_[1], hi2 = flat_hi_[2];
+    constexpr float g2 = gamma(2), g3 = gamma(3), g5 = gamma(5);
+    // The hits the upper bound does not take.
+    alignas(64) int doubtful[MaxColumns], list[MaxColumns];
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
+        const float d0 = std::max(std::abs(lo0 - q_rox[k]), std::abs(hi0 - q_rox[k]));
+        const float d1 = std::max(std::abs(lo1 - q_roy[k]), std::abs(hi1 - q_roy[k]));
+        const float d2 = std::max(std::abs(lo2 - q_roz[k]), std::abs(hi2 - q_roz[k]));
+        const float dz = pick(kz, d0, d1, d2);
+        const float max_zt = std::abs(q_sz[k]) * dz;
+        const float max_xt = pick(kx, d0, d1, d2) + std::abs(q_sx[k]) * dz;
+        const float max_yt = pick(ky, d0, d1, d2) + std::abs(q_sy[k]) * dz;
+        const float delta_x = g5 * (max_xt + max_zt), delta_y = g5 * (max_yt + max_zt);
+        const float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
+        const float bound = 1.001f * (3.f * (2.f * g3 * max_zt + (delta_e * max_zt) * std::abs(q_inv_det[k])));
+        const float found = q_best[k] != ~0u ? 1.f : 0.f;
+        doubtful[k] = q_best_t[k] > bound ? 0 : (found != 0.f ? 1 : 0);
+    }
+    const int m = simd::select_indices(doubtful, n, 1, list);
+    const int padded = simd::pad_indices(list, m);
+    alignas(64) float fails[MaxColumns];
+#pragma GCC ivdep
+    for (int j = 0; j < padded; ++j) {
+        const int k = list[j];
+        const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
         const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
-        const int best = int(q_best[k]);  // (-1: no hit; signed indices gather)
-        const float found = best >= 0 ? 1.f : 0.f;
-        const int i = best >= 0 ? best : 0;
+        const int i = int(q_best[k]);  // (a hit's: signed indices gather)
         float x[3], y[3], z[3];
 #pragma GCC unroll 3
-        for (int j = 0; j < 3; ++j) {
-            const float *c = coords + 3 * j * stride;
+        for (int v = 0; v < 3; ++v) {
+            const float *c = coords + 3 * v * stride;
             float v0 = c[i], v1 = c[stride + i], v2 = c[2 * stride + i];
-            z[j] = pick(kz, v0, v1, v2) - oz;
-            x[j] = (pick(kx, v0, v1, v2) - ox) - sx * z[j];
-            y[j] = (pick(ky, v0, v1, v2) - oy) - sy * z[j];
+            z[v] = pick(kz, v0, v1, v2) - oz;
+            x[v] = (pick(kx, v0, v1, v2) - ox) - sx * z[v];
+            y[v] = (pick(ky, v0, v1, v2) - oy) - sy * z[v];
         }
         float U = x[2] * y[1] - y[2] * x[1];
         float Ve = x[0] * y[2] - y[0] * x[2];
         float We = x[1] * y[0] - y[1] * x[0];
         float det = (U + Ve) + We;
         float inv_det = 1.f / det;
-        float fails = q_best_t[k] > t_error_bound(x, y, z, sz, U, Ve, We, inv_det) ? 0.f : found;
-        q_retrace[k] = fails != 0.f ? 1.f : q_retrace[k];
+        fails[j] = q_best_t[k] > t_error_bound(x, y, z, sz, U, Ve, We, inv_det) ? 0.f : 1.f;
     }
-    // The triangles' primitives (apart: with this gather in the loop above, GCC does not
-    // vectorise that for AVX2).
-    for (int k = 0; k < n; ++k) q_best[k] = q_best[k] != ~0u ? flat_triangles_[q_best[k]].prim : ~0u;
+    for (int j = 0; j < m; ++j) {
+        if (fails[j] != 0.f) q_retrace[list[j]] = 1.f;
+    }
+    // The triangles' primitives (an index clamped to the last, gathered unconditionally).
+    const uint32_t *prims = flat_prims_.data(), last = uint32_t(stride - 1);
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const uint32_t prim = prims[std::min(q_best[k], last)];
+        q_best[k] = q_best[k] != ~0u ? prim : ~0u;
+    }
 }
 
 /// intersect_sphere() for rays list[0, m) of `r`, lane by lane (SphereQuadratic, then its
@@ -1085,6 +1132,7 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
     alignas(64) float ox[MaxColumns], oy[MaxColumns], oz[MaxColumns], sx[MaxColumns], sy[MaxColumns],
         sz[MaxColumns], best_t[MaxColumns], best_u[MaxColumns], best_v[MaxColumns];
     alignas(64) uint32_t best_prim[MaxColumns];
+    alignas(64) float best_inv_det[MaxColumns];  // (deferred tests only)
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         float dx = r.dx[k], dy = r.dy[k], dz = r.dz[k];
@@ -1106,7 +1154,7 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
         float finite = sum < Infinity ? 1.f : 0.f;
         finite = dkz != 0.f ? finite : 0.f;
         retrace[k] = finite != 0.f ? 0.f : 1.f;
-        best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u;
+        best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u, best_inv_det[k] = 0.f;
     }
     // Each triangle against every ray, G triangles per pass over the rays (their constants
     // and best hits loaded and stored once per pass).
@@ -1114,7 +1162,7 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) inv_x[k] = 1.f / r.dx[k], inv_y[k] = 1.f / r.dy[k], inv_z[k] = 1.f / r.dz[k];
     FlatRays rays{r.tmin, r.tmax, kx, ky, kz, ox, oy, oz, sx, sy, sz, retrace, best_t, best_u, best_v, best_prim,
-                  r.ox, r.oy, r.oz, inv_x, inv_y, inv_z, 0.5f * flat_area_};
+                  best_inv_det, r.ox, r.oy, r.oz, inv_x, inv_y, inv_z, 0.5f * flat_area_};
     // (The rounding bound is deferred beyond 16 triangles: cornell-box's 36, 468 -> 440 ms; the
     // cbox's 12 took 2% longer, the gathers of the check costing more than it saves there.)
     const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;

@@ -200,7 +200,9 @@ private:
     };
     std::vector<FlatTriangle> flat_triangles_;
     std::vector<float> flat_coords_;  ///< their vertices, [vertex][axis][triangle]
+    std::vector<uint32_t> flat_prims_;  ///< their primitives
     float flat_area_ = 0.f;  ///< the surface area of their bounding box
+    float flat_lo_[3] = {}, flat_hi_[3] = {};  ///< that box's corners
     struct FlatRays;
     template <int G, bool Deferred>
     static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);
