@@ -917,10 +917,10 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 /// rough_emitter_stage for either), so that the vector stage carries none of their code and
 /// the other lanes pay nothing for it (glossy, whose walls are diffuse and whose rough lanes
 /// are a third of its vertices: 459-460 -> 448-450 ms, and 431-434 -> 410-412 more with all
-/// the lists of lanes padded, simd::pad_indices). A new BSDF with costly terms takes
-/// stages of its own in this pattern. The lanes' inputs are packed one lane at a time
-/// (gathers in lanes were no faster) and their results moved back so; the rest runs in SIMD
-/// lanes over the list, padded to whole vectors (simd::pad_indices).
+/// the lists of lanes padded). A new BSDF with costly terms takes stages of its own in this
+/// pattern. The lanes' inputs are packed one lane at a time (gathers in lanes were no
+/// faster) and their results moved back so; the rest runs in SIMD lanes over the list,
+/// padded to whole vectors (simd::pad_indices).
 
 /// The lanes [0, n) shaded by a rough BSDF of GGX's distribution, listed in `lanes`; returns
 /// their number.
