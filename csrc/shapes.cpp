@@ -128,12 +128,7 @@ SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool al
         si.n = local;
         if (shape.needs_uv || all_uv) {
             // Spherical coordinates in the sphere's own frame: u = phi / 2pi, v = theta / pi.
-            Vec3 q{dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)};
-            // (atan2_poly and acos_full, not libm's: the wavefront's interaction stage computes
-            // the same in SIMD lanes.)
-            float phi = atan2_poly(q.y, q.x);
-            phi = phi < 0.f ? phi + 2.f * Pi : phi;
-            si.uv = {phi * InvTwoPi, acos_full(q.z) * InvPi};
+            si.uv = sphere_uv({dot(local, shape.local_x), dot(local, shape.local_y), dot(local, shape.local_z)});
         }
         if (shape.flip_normals) si.n = -si.n;
         ns = si.n;

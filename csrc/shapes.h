@@ -294,6 +294,16 @@ struct AnalyticHit {
 AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmin,
                                                      float tmax);
 
+/// A sphere's uv at the unit direction q from its centre, in the sphere's own frame
+/// (Shape::local_x, local_y, local_z): u = phi / 2pi, v = theta / pi. From atan2_poly and
+/// acos_full, not libm's, so that Geometry::interaction and the wavefront's interactions in
+/// SIMD lanes (sphere_interactions) compute the same.
+RBPT_INLINE Vec2 sphere_uv(const Vec3 &q) {
+    float phi = atan2_poly(q.y, q.x);
+    phi = phi < 0.f ? phi + 2.f * Pi : phi;
+    return {phi * InvTwoPi, acos_full(q.z) * InvPi};
+}
+
 /// Squared radius beyond which a reference point counts as outside a sphere. Points on the
 /// sphere itself (its own shading points) count as inside when its normals face inwards,
 /// as in Mitsuba (which scales the radius by 1 +- epsilon).

@@ -913,8 +913,8 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 
 /// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
 /// (GGX's, or Beckmann's), in stages over the lanes that have them, listed (GGX:
-/// list_ggx_lanes and ggx_sample_stage; Beckmann: beckmann_sample_stage; then
-/// rough_emitter_stage for either), so that the vector stage carries none of their code and
+/// ggx_sample_stage; Beckmann: beckmann_sample_stage; then rough_emitter_stage for either;
+/// both listed by list_rough_lanes), so that the vector stage carries none of their code and
 /// the other lanes pay nothing for it (glossy, whose walls are diffuse and whose rough lanes
 /// are a third of its vertices: 459-460 -> 448-450 ms, and 431-434 -> 410-412 more with all
 /// the lists of lanes padded). A new BSDF with costly terms takes stages of its own in this
@@ -922,23 +922,25 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 /// faster) and their results moved back so; the rest runs in SIMD lanes over the list,
 /// padded to whole vectors (simd::pad_indices).
 
-/// The lanes [0, n) shaded by a rough BSDF of GGX's distribution, listed in `lanes`; returns
-/// their number.
-int list_ggx_lanes(const Batch &b, int n, const WavefrontScene &ws, int *lanes) {
+/// The lanes [0, n) shaded by a rough BSDF of Beckmann's distribution (beckmann 1) or GGX's
+/// (0), listed in `lanes`; returns their number.
+int list_rough_lanes(const Batch &b, int n, const WavefrontScene &ws, float beckmann, int *lanes) {
     const WavefrontScene::Material *mats = ws.materials.data();
     alignas(64) int flag[B];
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         const WavefrontScene::Material &m = mats[b.mat[k]];
         const float shade = b.shade[k] != 0 ? 1.f : 0.f;
-        flag[k] = m.rough * (1.f - m.beckmann) * shade != 0.f ? 1 : 0;
+        const float kind = m.beckmann == beckmann ? 1.f : 0.f;
+        flag[k] = m.rough * kind * shade != 0.f ? 1 : 0;
     }
     return simd::select_indices(flag, n, 1, lanes);
 }
 
 /// A list of rough lanes and the inputs its two stages share, packed by its sample stage
 /// before the vector stage (which changes none of them but the throughput, packed as it was
-/// before the vertex) and read again by rough_emitter_stage after it.
+/// before the vertex) and read again by rough_emitter_stage after it; wi in the frame the
+/// vertex stage samples in (twosided's flip applied).
 struct RoughLanes {
     int count = 0, padded = 0;  ///< the lanes, and the list's length padded to whole vectors
     alignas(64) int lanes[B], mat[B];
@@ -947,20 +949,22 @@ struct RoughLanes {
 
 /// Packs the inputs of the lanes r.lanes[0, r.count) into `r` (the list padded to whole
 /// vectors first), and their BSDF sample's numbers (draw_stage's) into u1s, ux and uy.
-void pack_rough_lanes(const Batch &b, RoughLanes &r, float *u1s, float *ux, float *uy) {
+void pack_rough_lanes(const Batch &b, const WavefrontScene &ws, RoughLanes &r, float *u1s, float *ux, float *uy) {
     r.padded = simd::pad_indices(r.lanes, r.count);
     for (int j = 0; j < r.padded; ++j) {
         const int k = r.lanes[j];
         r.mat[j] = b.mat[k];
         r.ar[j] = b.ar[k], r.ag[j] = b.ag[k], r.ab[j] = b.ab[k], r.tr[j] = b.tr[k], r.tg[j] = b.tg[k], r.tb[j] = b.tb[k];
-        r.wix[j] = b.wix[k], r.wiy[j] = b.wiy[k], r.wiz[j] = b.wiz[k];
+        // (The flip as a product with -1, as the vertex stage's: exact.)
+        const float side = ws.materials[size_t(b.mat[k])].twosided != 0 && b.wiz[k] < 0.f ? -1.f : 1.f;
+        r.wix[j] = b.wix[k], r.wiy[j] = b.wiy[k], r.wiz[j] = b.wiz[k] * side;
         r.br[j] = b.br[k], r.bg[j] = b.bg[k], r.bb[j] = b.bb[k];
         u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
     }
 }
 
-/// The BSDF samples of the rough lanes packed in `r`, before the vector stage, in its frame
-/// (twosided's flip): the reflection about a visible normal (GGX's, sampled here; with Terms
+/// The BSDF samples of the rough lanes packed in `r`, before the vector stage, in its frame:
+/// the reflection about a visible normal (GGX's, sampled here; with Terms
 /// StoredOnly the one given in mx, my, mz, with the microfacet terms towards the sample in
 /// D, g_i, g_o) or, for a roughplastic where u1 picks its base, the cosine-weighted
 /// direction; its density (zero where wi is below the surface) and its weight value /
@@ -979,10 +983,7 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
     for (int j = 0; j < r.padded; ++j) {
         const WavefrontScene::Material &m = mats[mat[j]];
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
-        Vec3 wi{wix[j], wiy[j], wiz[j]};
-        float side = wi.z < 0.f ? -1.f : 1.f;
-        side = m.twosided != 0 ? side : 1.f;
-        wi.z = wi.z * side;
+        const Vec3 wi{wix[j], wiy[j], wiz[j]};
         const Vec2 u2{ux[j], uy[j]};
         const Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
         Vec3 normal;
@@ -1008,10 +1009,10 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
     }
 }
 
-/// The BSDF samples of the GGX lanes listed in `r` (list_ggx_lanes'), before the vector stage.
+/// The BSDF samples of the GGX lanes listed in `r`, before the vector stage.
 void ggx_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
     alignas(64) float u1s[B], ux[B], uy[B];
-    pack_rough_lanes(b, r, u1s, ux, uy);
+    pack_rough_lanes(b, ws, r, u1s, ux, uy);
     rough_samples<Microfacet::GGX>(b, r, ws, u1s, ux, uy, nullptr, nullptr, nullptr, nullptr, nullptr, nullptr);
 }
 
@@ -1051,10 +1052,7 @@ void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws
     for (int j = 0; j < padded; ++j) {
         const WavefrontScene::Material &m = mats[mat[j]];
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
-        Vec3 wi{wix[j], wiy[j], wiz[j]};
-        float side = wi.z < 0.f ? -1.f : 1.f;
-        side = m.twosided != 0 ? side : 1.f;
-        wi.z = wi.z * side;
+        const Vec3 wi{wix[j], wiy[j], wiz[j]};
         const Vec3 wo{nwx[j], nwy[j], nwz[j]};
         RoughEval e = rough_eval<Terms>(m, MicrofacetTerms{}, tables, wi, wo, a, s);
         float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
@@ -1121,39 +1119,28 @@ struct BeckmannSearches {
     }
 };
 
-/// The BSDF samples of the Beckmann lanes, listed into `r`, before the vector stage, from the
-/// BSDF sample's numbers (draw_stage's), in the frame the vertex stage samples in (twosided's
-/// flip): the visible normal where the sample takes one (a conductor's; a roughplastic's
+/// The BSDF samples of the Beckmann lanes listed in `r`, before the vector stage, from the
+/// BSDF sample's numbers (draw_stage's), in the frame the vertex stage samples in: the
+/// visible normal where the sample takes one (a conductor's; a roughplastic's
 /// where u1 picks the specular lobe) and the microfacet terms towards the sampled direction,
 /// then rough_samples(). In SIMD lanes over the packed list (BeckmannSlopes' operations, so
 /// the normals are VisibleNormalSampler's bit for bit): the Newton search a step per pass
 /// while any lane's continues (most converge in two), its rare long tails one lane at a time.
 /// (Where wi is below the surface there is no sample: those lanes search nothing, and
 /// rough_samples() gives them density zero.)
-void beckmann_sample_stage(Batch &b, int n, const WavefrontScene &ws, RoughLanes &r) {
+void beckmann_sample_stage(Batch &b, const WavefrontScene &ws, RoughLanes &r) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
-    alignas(64) int flag[B];
-#pragma GCC ivdep
-    for (int k = 0; k < n; ++k) {
-        const float shade = b.shade[k] != 0 ? 1.f : 0.f;
-        flag[k] = mats[b.mat[k]].beckmann * shade != 0.f ? 1 : 0;
-    }
-    r.count = simd::select_indices(flag, n, 1, r.lanes);
-    if (r.count == 0) return;
     alignas(64) float u1s[B], ux[B], uy[B];
-    pack_rough_lanes(b, r, u1s, ux, uy);
+    pack_rough_lanes(b, ws, r, u1s, ux, uy);
     const int m = r.padded, *mat = r.mat;
-    const float *wx = r.wix, *wy = r.wiy, *wiz = r.wiz;
-    // wi's z in the flipped frame, alpha, whether the sample is the plastic's diffuse base (no
-    // normal; rough_samples()' choice of lobe) and whether there is a sample.
-    alignas(64) float wz[B], alpha[B], base[B], below[B];
+    const float *wx = r.wix, *wy = r.wiy, *wz = r.wiz;
+    // alpha, whether the sample is the plastic's diffuse base (no normal; rough_samples()'
+    // choice of lobe) and whether there is a sample (wi above the surface).
+    alignas(64) float alpha[B], base[B], below[B];
 #pragma GCC ivdep
     for (int j = 0; j < m; ++j) {
         const WavefrontScene::Material &material = mats[mat[j]];
-        float side = wiz[j] < 0.f ? -1.f : 1.f;
-        side = material.twosided != 0 ? side : 1.f;
-        wz[j] = wiz[j] * side;
         const float t_i = transmittance(tables, material.table, wz[j]);
         const float specular = u1s[j] < specular_probability(material, t_i) ? 1.f : 0.f;
         alpha[j] = material.alpha;
@@ -1352,7 +1339,7 @@ RBPT_INLINE void store_interaction(Batch &b, int k, const Vec3 &p, const Vec3 &p
 /// Geometry::interaction's sphere branch for the lanes listed in list[0, m) (rays that hit a
 /// sphere), in SIMD lanes over the list: the hit re-projected onto the sphere in double
 /// precision, its normal, and with UV its uv where a texture reads it (spherical coordinates
-/// in the sphere's frame, from atan2_poly and acos_full as Geometry::interaction's). The rays are
+/// in the sphere's frame, sphere_uv as Geometry::interaction's). The rays are
 /// packed and the results computed into packed columns (the list padded to whole vectors),
 /// then moved to the lanes one at a time (AVX2 has no scatter).
 template <bool UV>
@@ -1361,7 +1348,7 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
     const Vec3 *centers = ws.sphere_center.data();
     const Vec3 *sphere_x = ws.sphere_x.data(), *sphere_y = ws.sphere_y.data(), *sphere_z = ws.sphere_z.data();
     const float *radii = ws.sphere_radius.data(), *signs = ws.sphere_sign.data();
-    const int *sphere_uv = ws.sphere_uv.data();
+    const int *reads_uv = ws.sphere_uv.data();
     // The listed lanes' rays and spheres, packed.
     alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], ht[B];
     alignas(64) int sphere[B];
@@ -1387,10 +1374,8 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
         Vec3 local = normalize(Vec3{float(r0 * scale), float(r1 * scale), float(r2 * scale)});
         Vec3 sn = local * signs[a];
         if constexpr (UV) {
-            Vec3 q{dot(local, sphere_x[a]), dot(local, sphere_y[a]), dot(local, sphere_z[a])};
-            float phi = atan2_poly(q.y, q.x);
-            phi = phi < 0.f ? phi + 2.f * Pi : phi;
-            su[j] = phi * InvTwoPi, sv[j] = acos_full(q.z) * InvPi;
+            const Vec2 uv = sphere_uv({dot(local, sphere_x[a]), dot(local, sphere_y[a]), dot(local, sphere_z[a])});
+            su[j] = uv.x, sv[j] = uv.y;
         }
         px[j] = sp.x, py[j] = sp.y, pz[j] = sp.z;
         ex[j] = sp_error.x, ey[j] = sp_error.y, ez[j] = sp_error.z;
@@ -1402,7 +1387,7 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
         store_interaction(b, k, {px[j], py[j], pz[j]}, {ex[j], ey[j], ez[j]}, sn, sn);
         // (Its uv where it is read, as Geometry::interaction's: selected here, as both selects
         // in the loop above stop GCC 12 from vectorising it.)
-        const bool read = UV && sphere_uv[sphere[j]] != 0;
+        const bool read = UV && reads_uv[sphere[j]] != 0;
         b.uvx[k] = read ? su[j] : 0.f, b.uvy[k] = read ? sv[j] : 0.f;
         b.done[k] = 1;
     }
@@ -1793,10 +1778,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // visible normals before those; their emitter samples after); then the vertices
         // shaded aside return.
         draw_stage(b, n, ws, cfg, camera.sampler, parts);
-        ggx.count = ws.any_ggx ? list_ggx_lanes(b, n, ws, ggx.lanes) : 0;
+        ggx.count = ws.any_ggx ? list_rough_lanes(b, n, ws, 0.f, ggx.lanes) : 0;
         if (ggx.count > 0) ggx_sample_stage(b, ggx, ws);
-        beckmann.count = 0;
-        if (ws.any_beckmann) beckmann_sample_stage(b, n, ws, beckmann);
+        beckmann.count = ws.any_beckmann ? list_rough_lanes(b, n, ws, 1.f, beckmann.lanes) : 0;
+        if (beckmann.count > 0) beckmann_sample_stage(b, ws, beckmann);
         // (Without emitter sampling the vector stage reads no aside sample.)
         if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
