@@ -397,6 +397,43 @@ std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vecto
     return blockers;
 }
 
+void ShapeBoxes::add(const Geometry &geometry, uint32_t shape) {
+    const Shape &s = geometry.shapes[shape];
+    Bounds box;
+    if (s.kind == ShapeKind::Mesh) {
+        for (uint32_t i = s.vertex_begin; i < s.vertex_begin + s.vertex_count; ++i) box.extend(geometry.positions[i]);
+    } else {
+        box = analytic_bounds(s);
+    }
+    if (!(box.lo.x <= box.hi.x)) return;  // (a mesh without vertices)
+    // Widened as flat_triangles() widens its pairs' boxes: far beyond the rounding of the
+    // shape's test and of the box's own.
+    for (int a = 0; a < 3; ++a) {
+        const float margin = 1e-4f * ((box.hi[a] - box.lo[a]) + std::max(std::abs(box.lo[a]), std::abs(box.hi[a]))) + 1e-6f;
+        lo[a].push_back(box.lo[a] - margin), hi[a].push_back(box.hi[a] + margin);
+    }
+}
+
+void ShapeBoxes::entered(const RayColumns &r, int n, int *enters) const {
+    const float *r_ox = r.ox, *r_oy = r.oy, *r_oz = r.oz, *r_dx = r.dx, *r_dy = r.dy, *r_dz = r.dz;
+    const float *r_tmin = r.tmin, *r_tmax = r.tmax;
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        // (A sum of magnitudes is finite exactly when each is.)
+        const float sum = ((std::abs(r_ox[k]) + std::abs(r_oy[k])) + std::abs(r_oz[k])) +
+                          ((std::abs(r_dx[k]) + std::abs(r_dy[k])) + std::abs(r_dz[k]));
+        enters[k] = sum < Infinity ? 0 : 1;
+    }
+    for (int i = 0; i < size(); ++i) {
+        const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            const Vec3 o{r_ox[k], r_oy[k], r_oz[k]}, inv_d{1.f / r_dx[k], 1.f / r_dy[k], 1.f / r_dz[k]};
+            enters[k] |= enters_box(box_lo, box_hi, o, inv_d, r_tmin[k], r_tmax[k], 1.0001f);
+        }
+    }
+}
+
 void BVH::build(const Geometry &geometry) {
     std::vector<uint32_t> all(geometry.primitive_count());
     for (uint32_t i = 0; i < uint32_t(all.size()); ++i) all[i] = i;

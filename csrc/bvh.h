@@ -62,6 +62,20 @@ struct HitColumns {
 /// segments, so their tree can leave those triangles out (Scene::shadow_bvh).
 std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vector<Vec3> &points);
 
+/// The boxes of a few shapes (a scene's emitters), each widened far beyond the rounding of
+/// its shape's intersection, and which rays enter one of them: a conservative test, so a ray
+/// whose query only matters where it finds one of those shapes can skip the query.
+struct ShapeBoxes {
+    std::vector<float> lo[3], hi[3];
+    /// Add shape `shape` of `geometry`: its vertices' box (a mesh), or its bounds (an analytic
+    /// shape).
+    void add(const Geometry &geometry, uint32_t shape);
+    int size() const { return int(lo[0].size()); }
+    /// enters[k] = 1 where ray k of rays[0, n) enters one of the boxes within its interval, else 0
+    /// (1 for a ray of non-finite origin or direction, which the query itself must judge).
+    void entered(const RayColumns &rays, int n, int *enters) const;
+};
+
 class BVH {
 public:
     /// Most rays intersect_columns() takes at once.

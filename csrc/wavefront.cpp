@@ -205,6 +205,12 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
+    // The emitting shapes' boxes, for the rays at their last vertex (trace_wavefront), unless
+    // an escaped ray finds the environment or there are so many that testing their boxes
+    // would cost about what tracing does.
+    for (uint32_t s = 0; s < scene.geometry.shapes.size(); ++s)
+        if (scene.geometry.shapes[s].emitter >= 0) ws.emitter_boxes.add(scene.geometry, s);
+    ws.last_rays_reach = scene.environment < 0 && ws.emitter_boxes.size() <= WavefrontScene::MostEmitterBoxes;
     return ws;
 }
 
@@ -1537,6 +1543,29 @@ RBPT_INLINE RayColumns ray_columns(const Batch &b) {
 /// Lane k's ray.
 RBPT_INLINE Ray load_ray(const Batch &b, int k) { return ray_columns(b).ray(k); }
 
+/// The closest hits of lanes [0, n) whose rays enter one of `boxes`, as intersect_columns()
+/// finds them (its answer for a ray does not depend on the other rays it takes); the others
+/// get none (prim ~0u). Returns how many it traced.
+int trace_reaching(Batch &b, int n, const ShapeBoxes &boxes, const BVH &bvh) {
+    alignas(64) int enters[B], lanes[B];
+    boxes.entered(ray_columns(b), n, enters);
+    const int m = simd::select_indices(enters, n, 1, lanes);
+    alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B], t[B], u[B], v[B];
+    alignas(64) uint32_t prim[B];
+    for (int j = 0; j < m; ++j) {
+        const int k = lanes[j];
+        ox[j] = b.ox[k], oy[j] = b.oy[k], oz[j] = b.oz[k], dx[j] = b.dx[k], dy[j] = b.dy[k], dz[j] = b.dz[k];
+        tmin[j] = b.tmin[k], tmax[j] = b.tmax[k];
+    }
+    if (m > 0) bvh.intersect_columns({ox, oy, oz, dx, dy, dz, tmin, tmax}, m, {t, u, v, prim});
+    for (int k = 0; k < n; ++k) b.prim[k] = ~0u;
+    for (int j = 0; j < m; ++j) {
+        const int k = lanes[j];
+        b.ht[k] = t[j], b.hu[k] = u[j], b.hv[k] = v[j], b.prim[k] = prim[j];
+    }
+    return m;
+}
+
 }  // namespace
 
 void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
@@ -1638,11 +1667,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto is_last = [&](int k) { return cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth; };
     const Geometry &g = scene.geometry;
     while (n > 0) {
-        // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
-        scene.bvh.intersect_columns(ray_columns(b), n, {b.ht, b.hu, b.hv, b.prim});
-        rays_traced += uint64_t(n);
         int n_last = 0;
         for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
+        if (n_last == n && ws.last_rays_reach) {
+            // Every path at its last vertex, where only an emitter found adds anything: trace
+            // the rays that enter an emitting shape's box (listed; gathered into columns of
+            // their own), the others end without (`direct`'s BSDF samples, most of which
+            // leave veach-mis's lights aside).
+            rays_traced += uint64_t(trace_reaching(b, n, ws.emitter_boxes, scene.bvh));
+        } else {
+            // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
+            scene.bvh.intersect_columns(ray_columns(b), n, {b.ht, b.hu, b.hv, b.prim});
+            rays_traced += uint64_t(n);
+        }
         if (n_last == n) {
             // Every path at its last vertex: they end here, with the emission of those whose
             // ray found an emitter (listed in lanes).

@@ -94,6 +94,12 @@ struct WavefrontScene {
     /// Per primitive, then one entry more for a ray that escaped: 1 where the ray finds an
     /// emitter there (the shape's, or the environment), else 0.
     std::vector<int> prim_emits;
+    /// The boxes of the shapes that emit, and whether the rays at their last vertex are traced
+    /// only where they enter one (a ray that finds no emitter adds nothing there): not where
+    /// the environment emits, nor beyond MostEmitterBoxes shapes.
+    ShapeBoxes emitter_boxes;
+    bool last_rays_reach = false;
+    static constexpr int MostEmitterBoxes = 16;
     /// The parameters (per parameter, nonzero where marked) whose materials
     /// exclude_watched_inputs() took out of prim_quick, for renders logging their reads.
     const char *quick_watched = nullptr;

@@ -739,3 +739,35 @@ def test24_backward_in_lanes_with_other_samplers(tmp_path, monkeypatch, sampler)
     spp = 16 if sampler["type"] == "ldsampler" else 9
     assert_lanes_give_the_tapes_gradients(tr.load_dict(d), ["floor.bsdf.reflectance.value", "quad.emitter.radiance.value"],
                                           monkeypatch, spp=spp)
+
+
+@pytest.mark.parametrize("integrator", [{"type": "direct"}, {"type": "path", "max_depth": 2},
+                                        {"type": "path", "max_depth": 1}])
+def test25_last_rays_traced_only_towards_emitters(tmp_path, monkeypatch, integrator):
+    # Where every path of a batch is at its last vertex, only the rays that enter an emitting
+    # shape's box are traced (WavefrontScene::emitter_boxes): the image stays path_li's bit for
+    # bit, with mesh lights, spheres (one of them tiny), a disk and rough and mirror
+    # vertices whose BSDF samples aim at them, and fewer rays are traced than path_li traces.
+    # With the environment emitting, every ray is traced.
+    from torch_rbpt.render import render_with_stats
+    d = sphere_lights(room_dict(tmp_path), "spheres and meshes")
+    d["integrator"] = integrator
+    d["disk"] = {"type": "disk", "to_world": tr.Transform.translate([0.6, 1.4, -0.4]).rotate([1, 0, 0], 90).scale(0.2),
+                 "emitter": {"type": "area", "radiance": 3.0}}
+    d["mirror"] = {"type": "sphere", "radius": 0.2, "center": [0.3, 0.25, 0.2], "bsdf": {"type": "conductor"}}
+    d["metal"] = {"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, -0.2],
+                  "bsdf": {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.1}}
+    for sky in (False, True):
+        if sky:
+            d["sky"] = {"type": "constant", "radiance": 0.2}
+        scene = tr.load_dict(d)
+        assert uses_wavefront(scene)
+        wavefront, rays = render_with_stats(scene, spp=9, seed=4)
+        with monkeypatch.context() as m:
+            m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+            scalar, scalar_rays = render_with_stats(scene, spp=9, seed=4)
+        assert torch.equal(wavefront, scalar)
+        assert float(scalar.mean()) > 0.05
+        # (path_li and direct_li count a few rays otherwise: 6655 against 6655 and 6771 with
+        # the sky; without it 4580 against 6779 and 6895, 143 against 2457 at max_depth 1.)
+        assert rays > 0.95 * scalar_rays if sky else rays < 0.9 * scalar_rays
