@@ -146,9 +146,11 @@ def test10_no_shadow_ray_towards_an_emitter_the_bsdf_cannot_reflect(integrator):
         })
 
     samples = 4 * 4 * 8
-    image, rays = render_with_stats(floor_scene(-1.0), 8)
-    assert rays == 2 * samples  # camera ray + BSDF ray (which escapes)
+    image, dark_rays = render_with_stats(floor_scene(-1.0), 8)
+    # Camera rays, and the BSDF rays (which escape) where they are traced: path_li traces
+    # them, the wavefront none (no shape emits, so they cannot find an emitter).
+    assert dark_rays in (samples, 2 * samples)
     assert float(image.abs().max()) == 0.0
     image, rays = render_with_stats(floor_scene(1.0), 8)
-    assert rays == 3 * samples
+    assert rays == dark_rays + samples  # a shadow ray per sample
     assert float(image.min()) > 0.0
