@@ -510,18 +510,24 @@ private:
     int next_border_ = 0;            ///< the next tile whose border is to be added
 };
 
-/// The samples of tile (tx, ty) traced by trace_wavefront() in chunks of up to 16 batches
-/// (whose lanes it refills as paths end), each chunk splatted in the order the scalar loop
-/// splats (pixel by pixel, sample by sample), so that every pixel sums the same values in the
-/// same order. Returns the number of non-finite samples dropped.
-uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
-                              const Camera &camera, const IntegratorSettings &cfg,
-                              const RenderRequest &req, const Tiles &tiles, int tx, int ty,
-                              const Film &film, Film::Block &block) {
-    constexpr int Chunk = 16 * WavefrontBatch;
+/// Most samples trace_wavefront() takes at once (it refills its batch's lanes from them as
+/// paths end, and drains the batch at their end).
+constexpr int WavefrontChunk = 64 * WavefrontBatch;
+
+/// The samples of tiles (tx[i], ty[i]), i < count, in that order, traced by trace_wavefront()
+/// in chunks of up to WavefrontChunk samples, which may span tiles; each chunk splatted in
+/// the order the scalar loop splats (pixel by pixel, sample by sample) into its tile's block
+/// (blocks[i]), so that every pixel sums the same values in the same order. Returns the
+/// number of non-finite samples dropped.
+uint64_t splat_tiles_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene &ws,
+                               const Camera &camera, const IntegratorSettings &cfg,
+                               const RenderRequest &req, const Tiles &tiles, const int *tx, const int *ty,
+                               int count, const Film &film, Film::Block *blocks) {
+    constexpr int Chunk = WavefrontChunk;
     static thread_local std::vector<WavefrontSample> samples(Chunk);
     static thread_local std::vector<Vec2> pos(Chunk);
     static thread_local std::vector<RGB<float>> L(Chunk);
+    static thread_local std::vector<int> tile_of(Chunk);  // (its index in the group)
     // A batch's filter weights (SplatWeights: in SIMD lanes).
     SplatWeights weights(camera.filter);
     static_assert(SplatWeights::Batch == WavefrontBatch);
@@ -539,6 +545,7 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
             int run[WavefrontBatch];
             for (int k = 0; k < m;) {
                 const int px = batch[k].px, py = batch[k].py;
+                Film::Block &block = blocks[tile_of[size_t(first + k)]];
                 int r = 0;
                 for (; k < m && batch[k].px == px && batch[k].py == py; ++k) {
                     if (sample_is_finite(value[k])) {
@@ -552,14 +559,17 @@ uint64_t splat_tile_wavefront(const RenderContext<RGB<float>> &ctx, const Wavefr
         }
         n = 0;
     };
-    for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
-                           [&](int px, int py, uint64_t key) {
-        PixelSeed seed(req.seed, key);
-        for (int s = 0; s < req.spp; ++s) {
-            samples[size_t(n++)] = {px, py, seed, s};
-            if (n == Chunk) flush();
-        }
-    });
+    for (int i = 0; i < count; ++i) {
+        for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx[i], ty[i],
+                               [&](int px, int py, uint64_t key) {
+            PixelSeed seed(req.seed, key);
+            for (int s = 0; s < req.spp; ++s) {
+                tile_of[size_t(n)] = i;
+                samples[size_t(n++)] = {px, py, seed, s};
+                if (n == Chunk) flush();
+            }
+        });
+    }
     if (n > 0) flush();
     return dropped;
 }
@@ -572,18 +582,47 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
     std::optional<WavefrontScene> wavefront;
     if constexpr (std::is_same_v<S, RGB<float>>) wavefront = wavefront_scene(ctx, cfg, camera);
     std::atomic<uint64_t> rays{0}, nonfinite{0};
+    if constexpr (std::is_same_v<S, RGB<float>>) {
+        if (wavefront) {
+            // Tiles in groups of consecutive ones whose samples fill about a chunk, so that
+            // trace_wavefront drains its batch (paths ending one by one, their lanes left
+            // empty) once per chunk, not once per tile; enough groups for each worker to take
+            // eight.
+            const RowRange rows = tile_rows(tiles, sample_rows(camera, req));
+            const int64_t n_tiles = int64_t(tiles.nx) * (rows.end - rows.begin);
+            const int64_t per_tile = int64_t(tiles.size) * tiles.size * req.spp;
+            const int64_t group = std::max<int64_t>(
+                1, std::min<int64_t>(WavefrontChunk / std::max<int64_t>(per_tile, 1), n_tiles / (8 * std::max(pool.workers, 1))));
+            const int64_t n_groups = (n_tiles + group - 1) / group;
+            std::atomic<int64_t> next{0};
+            pool.run([&] {
+                std::vector<int> tx, ty;
+                std::vector<Film::Block> blocks;
+                for (int64_t g = next++; g < n_groups; g = next++) {
+                    const uint64_t rays_before = rays_traced;
+                    tx.clear(), ty.clear(), blocks.clear();
+                    for (int64_t k = g * group; k < std::min(n_tiles, (g + 1) * group); ++k) {
+                        tx.push_back(int(k % tiles.nx)), ty.push_back(rows.begin + int(k / tiles.nx));
+                        blocks.push_back(film.block(tx.back(), ty.back()));
+                    }
+                    const uint64_t dropped = splat_tiles_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx.data(),
+                                                                   ty.data(), int(tx.size()), film, blocks.data());
+                    for (size_t i = 0; i < tx.size(); ++i) film.commit(tx[i], ty[i], std::move(blocks[i]));
+                    rays += rays_traced - rays_before;
+                    nonfinite += dropped;
+                }
+            });
+            assert(film.complete());
+            if (req.rays) *req.rays = rays;
+            if (req.nonfinite) *req.nonfinite = nonfinite;
+            return;
+        }
+    }
     for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
         uint64_t rays_before = rays_traced, dropped = 0;
         Film::Block block = film.block(tx, ty);
-        bool traced = false;  // by the wavefront
-        if constexpr (std::is_same_v<S, RGB<float>>) {
-            if (wavefront) {
-                dropped = splat_tile_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx, ty, film, block);
-                traced = true;
-            }
-        }
-        if (!traced) for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
-                                            [&](int px, int py, uint64_t key) {
+        for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,
+                               [&](int px, int py, uint64_t key) {
             PixelSeed seed(req.seed, key);
             for (int s = 0; s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, seed, uint64_t(s));

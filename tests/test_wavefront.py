@@ -771,3 +771,26 @@ def test25_last_rays_traced_only_towards_emitters(tmp_path, monkeypatch, integra
         # (path_li and direct_li count a few rays otherwise: 6655 against 6655 and 6771 with
         # the sky; without it 4580 against 6779 and 6895, 143 against 2457 at max_depth 1.)
         assert rays > 0.95 * scalar_rays if sky else rays < 0.9 * scalar_rays
+
+
+@pytest.mark.parametrize("integrator", [{"type": "path"}, {"type": "path", "max_depth": 2}])
+def test26_tiles_share_a_chunk_of_samples(tmp_path, monkeypatch, integrator):
+    # At a few samples per pixel, consecutive tiles give their samples to one call of
+    # trace_wavefront (up to WavefrontChunk), each sample splatted into its own tile's block:
+    # 128 x 96 pixels are 8 x 6 tiles, which 1 thread takes in groups of up to 6 and 2
+    # threads of up to 3 (at least eight groups per worker), with a gaussian's splats
+    # reaching neighbouring tiles. The image is path_li's bit for bit, for both thread counts
+    # and for spp 1, 3 (groups of 6 or 3 tiles) and 40 (one tile per call).
+    d = room_dict(tmp_path, integrator)
+    d["sensor"]["film"].update({"width": 128, "height": 96, "rfilter": {"type": "gaussian"}})
+    scene = tr.load_dict(d)
+    for spp in (1, 3, 40):
+        with torch_threads(1):
+            one = tr.render(scene, spp=spp, seed=6)
+        with torch_threads(2):
+            two = tr.render(scene, spp=spp, seed=6)
+        with monkeypatch.context() as m:
+            m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+            scalar = tr.render(scene, spp=spp, seed=6)
+        assert float(scalar.mean()) > 0.01
+        assert torch.equal(one, scalar) and torch.equal(two, scalar), spp
