@@ -71,6 +71,32 @@ void for_each_tile(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F 
     });
 }
 
+/// for_each_tile() for groups of consecutive tiles (in tile order): f(tx, ty, count) with the
+/// count tiles' coordinates, each worker taking the next group. A group is at most `most`
+/// tiles and at most a quarter of the tiles left per worker, so that the last groups are
+/// single tiles and the workers end together.
+template <typename F>
+void for_each_tile_group(const Tiles &tiles, RowRange rows, const WorkerPool &pool, int64_t most, F f) {
+    RowRange ty = tile_rows(tiles, rows);
+    const int64_t n = int64_t(tiles.nx) * (ty.end - ty.begin), quarter = 4 * std::max(pool.workers, 1);
+    std::mutex taking;
+    int64_t next = 0;
+    auto take = [&](int64_t &begin, int64_t &end) {
+        std::lock_guard<std::mutex> lock(taking);
+        begin = next;
+        end = next = std::min(n, next + std::clamp<int64_t>((n - next) / quarter, 1, std::max<int64_t>(most, 1)));
+        return begin < n;
+    };
+    pool.run([&] {
+        std::vector<int> xs, ys;
+        for (int64_t begin, end; take(begin, end);) {
+            xs.clear(), ys.clear();
+            for (int64_t k = begin; k < end; ++k) xs.push_back(int(k % tiles.nx)), ys.push_back(ty.begin + int(k / tiles.nx));
+            f(xs.data(), ys.data(), int(xs.size()));
+        }
+    });
+}
+
 /// Pixels of tile (tx, ty) within `rows`, in film coordinates: f(px, py, key) for each.
 template <typename F>
 void for_each_pixel_of_tile(const Camera &camera, const Tiles &tiles, RowRange rows, int tx,
@@ -586,31 +612,18 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
         if (wavefront) {
             // Tiles in groups of consecutive ones whose samples fill about a chunk, so that
             // trace_wavefront drains its batch (paths ending one by one, their lanes left
-            // empty) once per chunk, not once per tile; enough groups for each worker to take
-            // eight.
-            const RowRange rows = tile_rows(tiles, sample_rows(camera, req));
-            const int64_t n_tiles = int64_t(tiles.nx) * (rows.end - rows.begin);
-            const int64_t per_tile = int64_t(tiles.size) * tiles.size * req.spp;
-            const int64_t group = std::max<int64_t>(
-                1, std::min<int64_t>(WavefrontChunk / std::max<int64_t>(per_tile, 1), n_tiles / (8 * std::max(pool.workers, 1))));
-            const int64_t n_groups = (n_tiles + group - 1) / group;
-            std::atomic<int64_t> next{0};
-            pool.run([&] {
-                std::vector<int> tx, ty;
+            // empty) once per chunk, not once per tile.
+            const RowRange rows = sample_rows(camera, req);
+            const int64_t per_tile = std::max<int64_t>(1, int64_t(tiles.size) * tiles.size * req.spp);
+            const int64_t group = std::max<int64_t>(1, WavefrontChunk / per_tile);
+            for_each_tile_group(tiles, rows, pool, group, [&](const int *tx, const int *ty, int count) {
+                const uint64_t rays_before = rays_traced;
                 std::vector<Film::Block> blocks;
-                for (int64_t g = next++; g < n_groups; g = next++) {
-                    const uint64_t rays_before = rays_traced;
-                    tx.clear(), ty.clear(), blocks.clear();
-                    for (int64_t k = g * group; k < std::min(n_tiles, (g + 1) * group); ++k) {
-                        tx.push_back(int(k % tiles.nx)), ty.push_back(rows.begin + int(k / tiles.nx));
-                        blocks.push_back(film.block(tx.back(), ty.back()));
-                    }
-                    const uint64_t dropped = splat_tiles_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx.data(),
-                                                                   ty.data(), int(tx.size()), film, blocks.data());
-                    for (size_t i = 0; i < tx.size(); ++i) film.commit(tx[i], ty[i], std::move(blocks[i]));
-                    rays += rays_traced - rays_before;
-                    nonfinite += dropped;
-                }
+                for (int i = 0; i < count; ++i) blocks.push_back(film.block(tx[i], ty[i]));
+                nonfinite += splat_tiles_wavefront(ctx, *wavefront, camera, cfg, req, tiles, tx, ty, count, film,
+                                                   blocks.data());
+                for (int i = 0; i < count; ++i) film.commit(tx[i], ty[i], std::move(blocks[i]));
+                rays += rays_traced - rays_before;
             });
             assert(film.complete());
             if (req.rays) *req.rays = rays;

@@ -777,10 +777,10 @@ def test25_last_rays_traced_only_towards_emitters(tmp_path, monkeypatch, integra
 def test26_tiles_share_a_chunk_of_samples(tmp_path, monkeypatch, integrator):
     # At a few samples per pixel, consecutive tiles give their samples to one call of
     # trace_wavefront (up to WavefrontChunk), each sample splatted into its own tile's block:
-    # 128 x 96 pixels are 8 x 6 tiles, which 1 thread takes in groups of up to 6 and 2
-    # threads of up to 3 (at least eight groups per worker), with a gaussian's splats
-    # reaching neighbouring tiles. The image is path_li's bit for bit, for both thread counts
-    # and for spp 1, 3 (groups of 6 or 3 tiles) and 40 (one tile per call).
+    # 128 x 96 pixels are 8 x 6 tiles, which 1 thread takes in groups of 12, 9, 6, ... and 2
+    # threads of 6, 5, 4, ... (a quarter of the tiles left per worker, down to single tiles),
+    # with a gaussian's splats reaching neighbouring tiles. The image is path_li's bit for
+    # bit, for both thread counts and for spp 1, 3 (groups) and 40 (one tile per call).
     d = room_dict(tmp_path, integrator)
     d["sensor"]["film"].update({"width": 128, "height": 96, "rfilter": {"type": "gaussian"}})
     scene = tr.load_dict(d)
