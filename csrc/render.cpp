@@ -56,25 +56,12 @@ RowRange sample_rows(const Camera &camera, const RenderRequest &req) {
     return rows_reaching(camera, requested_rows(camera, req));
 }
 
-/// Run tile(tx, ty) for every tile meeting rows [rows.begin, rows.end) of the crop window, on
-/// all of the pool's workers, each taking the next tile when it is done with one. Tiles
-/// splat into private buffers (Film::Block), so the order they run in changes no sum.
-template <typename F>
-void for_each_tile(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
-    RowRange ty = tile_rows(tiles, rows);
-    int64_t n = int64_t(tiles.nx) * (ty.end - ty.begin);
-    if (n == 0) return;
-    std::atomic<int64_t> next{0};
-    pool.run([&] {
-        for (int64_t k = next++; k < n; k = next++)
-            tile(int(k % tiles.nx), ty.begin + int(k / tiles.nx));
-    });
-}
-
-/// for_each_tile() for groups of consecutive tiles (in tile order): f(tx, ty, count) with the
-/// count tiles' coordinates, each worker taking the next group. A group is at most `most`
-/// tiles and at most a quarter of the tiles left per worker, so that the last groups are
-/// single tiles and the workers end together.
+/// Run f(tx, ty, count) for groups of consecutive tiles (in tile order; tx, ty the count
+/// tiles' coordinates) meeting rows [rows.begin, rows.end) of the crop window, on all of
+/// the pool's workers, each taking the next group when it is done with one. Tiles splat
+/// into private buffers (Film::Block), so the order they run in changes no sum. A group is
+/// at most `most` tiles and at most a quarter of the tiles left per worker, so that the
+/// last groups are single tiles and the workers end together.
 template <typename F>
 void for_each_tile_group(const Tiles &tiles, RowRange rows, const WorkerPool &pool, int64_t most, F f) {
     RowRange ty = tile_rows(tiles, rows);
@@ -94,6 +81,14 @@ void for_each_tile_group(const Tiles &tiles, RowRange rows, const WorkerPool &po
             for (int64_t k = begin; k < end; ++k) xs.push_back(int(k % tiles.nx)), ys.push_back(ty.begin + int(k / tiles.nx));
             f(xs.data(), ys.data(), int(xs.size()));
         }
+    });
+}
+
+/// for_each_tile_group() one tile at a time: tile(tx, ty).
+template <typename F>
+void for_each_tile(const Tiles &tiles, RowRange rows, const WorkerPool &pool, F tile) {
+    for_each_tile_group(tiles, rows, pool, 1, [&](const int *tx, const int *ty, int count) {
+        for (int i = 0; i < count; ++i) tile(tx[i], ty[i]);
     });
 }
 
@@ -608,6 +603,7 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
     std::optional<WavefrontScene> wavefront;
     if constexpr (std::is_same_v<S, RGB<float>>) wavefront = wavefront_scene(ctx, cfg, camera);
     std::atomic<uint64_t> rays{0}, nonfinite{0};
+    bool traced = false;  // by the wavefront
     if constexpr (std::is_same_v<S, RGB<float>>) {
         if (wavefront) {
             // Tiles in groups of consecutive ones whose samples fill about a chunk, so that
@@ -625,13 +621,10 @@ void splat_samples(const RenderContext<S> &ctx, const Camera &camera, const Inte
                 for (int i = 0; i < count; ++i) film.commit(tx[i], ty[i], std::move(blocks[i]));
                 rays += rays_traced - rays_before;
             });
-            assert(film.complete());
-            if (req.rays) *req.rays = rays;
-            if (req.nonfinite) *req.nonfinite = nonfinite;
-            return;
+            traced = true;
         }
     }
-    for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
+    if (!traced) for_each_tile(tiles, sample_rows(camera, req), pool, [&](int tx, int ty) {
         uint64_t rays_before = rays_traced, dropped = 0;
         Film::Block block = film.block(tx, ty);
         for_each_pixel_of_tile(camera, tiles, sample_rows(camera, req), tx, ty,

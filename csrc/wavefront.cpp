@@ -208,9 +208,11 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     // The emitting shapes' boxes, for the rays at their last vertex (trace_wavefront), unless
     // an escaped ray finds the environment or there are so many that testing their boxes
     // would cost about what tracing does.
-    for (uint32_t s = 0; s < scene.geometry.shapes.size(); ++s)
+    int emitting = 0;
+    for (const Shape &shape : scene.geometry.shapes) emitting += shape.emitter >= 0 ? 1 : 0;
+    ws.last_rays_reach = scene.environment < 0 && emitting <= WavefrontScene::MostEmitterBoxes;
+    for (uint32_t s = 0; ws.last_rays_reach && s < scene.geometry.shapes.size(); ++s)
         if (scene.geometry.shapes[s].emitter >= 0) ws.emitter_boxes.add(scene.geometry, s);
-    ws.last_rays_reach = scene.environment < 0 && ws.emitter_boxes.size() <= WavefrontScene::MostEmitterBoxes;
     return ws;
 }
 
