@@ -57,6 +57,12 @@ constexpr int MaxDepth = 64;
 constexpr int StackSize = (BVHWidth - 1) * MaxDepth + 1;
 /// Box exits are widened by a few ulps (pbrt's 1 + 2 gamma(3)) so grazing rays are not lost.
 constexpr float BoxWiden = 1.0000004f;
+/// How far a box [lo, hi] along an axis is widened where rays skip what lies inside it by
+/// its test alone (a flat pass's halves, ShapeBoxes): far more than the rounding of the
+/// box's own test and of the shapes' inside it.
+RBPT_INLINE float skip_margin(float lo, float hi) {
+    return 1e-4f * ((hi - lo) + std::max(std::abs(lo), std::abs(hi))) + 1e-6f;
+}
 
 /// NodeTest's operations for one ray, in a lane: whether it enters the box [lo, hi] within
 /// [t0, t1], t1 widened by `widen` (the near and far planes chosen by the sign of 1 / d).
@@ -406,10 +412,9 @@ void ShapeBoxes::add(const Geometry &geometry, uint32_t shape) {
         box = analytic_bounds(s);
     }
     if (!(box.lo.x <= box.hi.x)) return;  // (a mesh without vertices)
-    // Widened as flat_triangles() widens its pairs' boxes: far beyond the rounding of the
-    // shape's test and of the box's own.
+    // Widened as flat_triangles() widens its pairs' boxes.
     for (int a = 0; a < 3; ++a) {
-        const float margin = 1e-4f * ((box.hi[a] - box.lo[a]) + std::max(std::abs(box.lo[a]), std::abs(box.hi[a]))) + 1e-6f;
+        const float margin = skip_margin(box.lo[a], box.hi[a]);
         lo[a].push_back(box.lo[a] - margin), hi[a].push_back(box.hi[a] + margin);
     }
 }
@@ -959,7 +964,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
             box_lo[h][a] = box_hi[h][a] = vert[h * G / H][0][a];
             for (int i = h * G / H; i < (h + 1) * G / H; ++i)
                 for (int j = 0; j < 3; ++j) box_lo[h][a] = std::min(box_lo[h][a], vert[i][j][a]), box_hi[h][a] = std::max(box_hi[h][a], vert[i][j][a]);
-            const float margin = 1e-4f * ((box_hi[h][a] - box_lo[h][a]) + std::max(std::abs(box_lo[h][a]), std::abs(box_hi[h][a]))) + 1e-6f;
+            const float margin = skip_margin(box_lo[h][a], box_hi[h][a]);
             box_lo[h][a] -= margin, box_hi[h][a] += margin;
         }
     }
