@@ -16,8 +16,14 @@ metric). From the two curves it derives:
   image mean, per renderer, with a noise estimate (a difference beyond noise is a bug).
 
 Timing, "warm": best wall-clock time of --repeats renders (seeds 0, 1, ...), the two
-renderers taking turns render by render (so that a shared host's load changes hit both),
-after
+renderers taking turns (so that a shared host's load changes hit both). Each turn renders
+twice with the same spp: an untimed render (seed --repeats + k), then the timed one (seed k).
+The untimed render absorbs what the other renderer leaves behind: its worker threads still
+spinning for a few ms, and the caches it filled. Timed right after the other renderer, a
+render took 2-15 ms longer (session 40, Zen 5: veach-mis at 4 spp 8.3 -> 10.4-12.3 ms, Mitsuba
+13.4 -> 15.3-19.2 ms; cbox 21.2 -> 26.5-27.0 and 47.2 -> 50.4-50.7), which pulled the
+equal-spp ratios of the short renders towards 1. Both images of a turn count towards the
+error. Before the sweep at each spp,
   - ours: one untimed 1 spp render of the loaded scene (BSDF tables, page faults);
   - Mitsuba (llvm_ad_rgb): one untimed render of one pass at the same pass size and a
     different seed, so the JIT kernels are traced and compiled; with drjit's kernel
@@ -25,7 +31,7 @@ after
     most twice). Each timed Mitsuba render ends with dr.sync_thread().
 Renders that exceed 2^22 samples go through mitsuba_ref's passes (equal-spp passes,
 averaged), for references and sweep alike. The errors at each spp are the mean over the
-repeats' images (each repeat has its own seed).
+2 x --repeats images (each with its own seed).
 
 Writes benchmarks/results/error_time.csv, one PNG per scene (error_time_<scene>.png) and
 error_time.png (all scenes). The CPU model, core count, torch threads, Mitsuba
@@ -283,8 +289,9 @@ class MitsubaRenderer:
 
 
 def sweep(renderers: list, spps, repeats, ref) -> dict:
-    """Each renderer's rows and spp-weighted mean image. The renderers take turns render by
-    render (ours, Mitsuba, ours, ...), so that both see the same load of a shared host."""
+    """Each renderer's rows and spp-weighted mean image. The renderers take turns (ours,
+    Mitsuba, ours, ...), so that both see the same load of a shared host; each turn is an
+    untimed render and a timed one."""
     rows = {r.name: [] for r in renderers}
     acc = {r.name: torch.zeros_like(ref, dtype=torch.float64) for r in renderers}
     total = 0
@@ -292,19 +299,23 @@ def sweep(renderers: list, spps, repeats, ref) -> dict:
         for r in renderers:
             r.warm(spp)
         runs = {r.name: [] for r in renderers}
+        errors = {r.name: [] for r in renderers}
         for k in range(repeats):
             for r in renderers:
+                # An untimed render first (see the module's docstring), then the timed one.
+                untimed, _, _ = r.timed(spp, repeats + k)
                 img, dt, rays = r.timed(spp, k)
-                runs[r.name].append((dt, rmse(img, ref), rel_error(img, ref), rays))
-                acc[r.name] += img.double() * spp
-            total += spp
+                for im in (untimed, img):
+                    errors[r.name].append((rmse(im, ref), rel_error(im, ref)))
+                    acc[r.name] += im.double() * spp
+                runs[r.name].append((dt, rays))
+            total += 2 * spp
         for r in renderers:
-            times = [x[0] for x in runs[r.name]]
-            t = min(times)
-            rays = runs[r.name][0][3]
+            t = min(x[0] for x in runs[r.name])
+            rays = runs[r.name][0][1]
             rows[r.name].append({"spp": spp, "seconds": t,
-                                 "rmse": statistics.fmean(x[1] for x in runs[r.name]),
-                                 "rel_error": statistics.fmean(x[2] for x in runs[r.name]),
+                                 "rmse": statistics.fmean(e[0] for e in errors[r.name]),
+                                 "rel_error": statistics.fmean(e[1] for e in errors[r.name]),
                                  "mrays_per_s": rays / t / 1e6 if rays else float("nan")})
             print(f"  {r.name:8s} {spp:6d} spp  {t:8.3f} s  RMSE {rows[r.name][-1]['rmse']:.5f}", flush=True)
     return {r.name: (rows[r.name], (acc[r.name] / total).float()) for r in renderers}
@@ -442,7 +453,7 @@ def parse_args(argv=None):
     ap.add_argument("--res", type=int, default=256, help="film width (height keeps the scene's aspect)")
     ap.add_argument("--spp", type=int, nargs="+", default=[4, 16, 64, 256])
     ap.add_argument("--ref-spp", type=int, default=4096)
-    ap.add_argument("--repeats", type=int, default=3, help="timed renders per spp (best time, mean error)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed renders per spp, each after an untimed one (best time; error: mean over both)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 64x64, spp 4 16, ref 256 spp, 1 repeat")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only, even if Mitsuba is installed")
     mitsuba_ref.add_isa_argument(ap)
@@ -512,8 +523,8 @@ def main(argv=None) -> list[dict]:
     for sc in results:
         print_table(sc, info)
     print("\nTimes: best of the repeats, warm (ours after an untimed 1 spp render; Mitsuba after "
-          "an untimed render that compiled its JIT kernels), the two renderers taking turns render "
-          "by render. Errors: mean over the repeats.")
+          "an untimed render that compiled its JIT kernels), the two renderers taking turns, each "
+          "turn an untimed render and a timed one. Errors: mean over all renders (2 x repeats).")
     write_outputs(results, info, args.out)
     print(f"wrote {args.out / 'error_time.png'} and error_time_<scene>.png")
     return results

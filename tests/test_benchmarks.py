@@ -45,6 +45,7 @@ def test02_time_at_error():
     assert t == pytest.approx(0.25) and ext
 
 
+
 @pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
 def test03_variance_split_by_path_length(tmp_path):
     bench = load_benchmark("bench_variance")
@@ -86,3 +87,37 @@ def test05_csv_at_a_relative_path(tmp_path, monkeypatch, capsys):
     assert f"wrote {tmp_path / relative}" in capsys.readouterr().out  # outside the checkout
     assert machine.shown(relative, root=tmp_path) == relative  # inside it
     assert machine.shown(tmp_path / relative, root=tmp_path) == relative
+
+
+def test06_sweep_turns(tmp_path):
+    # Each renderer's turn is an untimed render and then the timed one: the time is the best of
+    # the timed renders alone (a render right after the other renderer's is slowed by its
+    # lingering threads and caches), the error the mean over both.
+    import torch
+    bench = load_benchmark("bench_error_time")
+    ref = torch.zeros(2, 2, 3)
+    log = []
+
+    class Fake:
+        def __init__(self, name, scale):
+            self.name, self.scale = name, scale
+
+        def warm(self, spp):
+            log.append((self.name, "warm", spp))
+
+        def timed(self, spp, seed):
+            log.append((self.name, seed))
+            # Untimed seeds (>= repeats) report a time no timed render reaches.
+            dt = 0.001 if seed >= 2 else self.scale * spp * (1 + seed)
+            return torch.full((2, 2, 3), float(seed + 1)), dt, 7
+
+    rs = [Fake("ours", 1.0), Fake("Mitsuba", 2.0)]
+    out = bench.sweep(rs, [4], 2, ref)
+    assert log == [("ours", "warm", 4), ("Mitsuba", "warm", 4),
+                   ("ours", 2), ("ours", 0), ("Mitsuba", 2), ("Mitsuba", 0),
+                   ("ours", 3), ("ours", 1), ("Mitsuba", 3), ("Mitsuba", 1)]
+    rows, mean = out["ours"]
+    assert rows[0]["seconds"] == pytest.approx(4.0)          # the best timed render
+    assert rows[0]["rmse"] == pytest.approx((3 + 1 + 4 + 2) / 4)  # images of seeds 2, 0, 3, 1
+    assert out["Mitsuba"][0][0]["seconds"] == pytest.approx(8.0)
+    assert torch.allclose(mean, torch.full((2, 2, 3), 2.5))
