@@ -21,17 +21,20 @@ MODE = release
 SANITIZER_ENV =
 endif
 # MARCH=<cpu> builds the extension for another CPU than this one (setup.py), e.g. x86-64-v3
-# for any AVX2 machine; `make bench-avx2` uses it.
+# for any AVX2 machine; `make bench-avx2` uses it. MTUNE=<cpu> forces the tuning, which
+# setup.py otherwise picks for this machine (torch_rbpt/build_flags.py).
 MARCH ?=
 export MARCH
+MTUNE ?=
+export MTUNE
 # One stamp per build mode; building one mode removes the other's stamp, so switching rebuilds.
-STAMP = .installed-$(MODE)$(if $(MARCH),-$(MARCH))
+STAMP = .installed-$(MODE)$(if $(MARCH),-$(MARCH))$(if $(MTUNE),-tune-$(MTUNE))
 
 .PHONY: install demo test test-slow bench bench-avx2 soak fuzz clean
 
 # Install torch (local CPU wheel, pinned so pip never resolves a CUDA build), the other
 # dependencies, and build the extension in place. Re-runs when a C++ source changes.
-$(STAMP): requirements.txt $(SOURCES)
+$(STAMP): requirements.txt $(SOURCES) torch_rbpt/build_flags.py
 	@rm -f .installed .installed-*
 	$(PIP) install --quiet torch==2.13.0
 	$(PIP) install --quiet -r requirements.txt

@@ -70,7 +70,7 @@ import torch
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402
-from machine import cpu_model, write_csv  # noqa: E402
+from machine import built_for, cpu_model, write_csv  # noqa: E402
 
 import torch_rbpt as tr  # noqa: E402
 from torch_rbpt.render import render_with_stats  # noqa: E402
@@ -154,7 +154,7 @@ def time_at_error(curve: list[tuple[float, float]], err: float) -> tuple[float, 
 
 
 def machine_info(mitsuba: bool) -> dict:
-    info = {"cpu": f"{cpu_model()}, torch_rbpt built for {tr._C.build_isa}", "cores": os.cpu_count(),
+    info = {"cpu": f"{cpu_model()}, torch_rbpt built for {built_for()}", "cores": os.cpu_count(),
             "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__, "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
             "mitsuba": ""}

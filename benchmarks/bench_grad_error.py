@@ -59,7 +59,7 @@ import torch_rbpt as tr
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import mitsuba_ref  # noqa: E402  (benchmarks/mitsuba_ref.py; imports Mitsuba lazily)
-from machine import cpu_model, write_csv  # noqa: E402
+from machine import built_for, cpu_model, write_csv  # noqa: E402
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 SCENES = HERE / "scenes"
@@ -345,7 +345,7 @@ def main(argv=None) -> dict:
     if not use_mi:
         print(f"Mitsuba 3 skipped ({why}): only torch_rbpt runs, errors are against its own "
               f"reference. To compare, {mitsuba_ref.INSTALL_HINT}.")
-    header = dict(cpu=f"{cpu_model()}, torch_rbpt built for {tr._C.build_isa}", cores=os.cpu_count(),
+    header = dict(cpu=f"{cpu_model()}, torch_rbpt built for {built_for()}", cores=os.cpu_count(),
                   torch_threads=torch.get_num_threads(),
                   date=datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
                   mitsuba=f"{mi_version} ({mitsuba_ref.variant()}, {mitsuba_ref.isa()})" if use_mi else "skipped")

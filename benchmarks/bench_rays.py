@@ -36,6 +36,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from machine import machine, simd, status_mb, write_csv  # noqa: E402
+from torch_rbpt import build_flags  # noqa: E402
 
 ROOT = HERE.parent
 CSRC = ROOT / "csrc"
@@ -46,9 +47,10 @@ BUNNY = SHARED / "meshes" / "bunny.ply"
 CBOX = SHARED / "cbox" / "cbox.xml"
 
 # setup.py's flags (plus -fwrapv, which setuptools adds from Python's own CFLAGS), including
-# -march=native unless PORTABLE=1, as for the extension.
-CXX_FLAGS = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare", "-O3", "-DNDEBUG", "-fwrapv",
-             "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"] + ([] if os.environ.get("PORTABLE", "0") == "1" else ["-march=native"])
+# The extension's optimised flags, its target and tuning (torch_rbpt/build_flags.py) unless
+# PORTABLE=1, as for the extension.
+CXX_FLAGS = ["-std=c++17", "-fopenmp", "-Wall", "-Wno-sign-compare", "-fwrapv", *build_flags.OPTIMISED] + \
+    ([] if os.environ.get("PORTABLE", "0") == "1" else build_flags.target_flags())
 CORE_SOURCES = ["bvh.cpp", "shapes.cpp"]
 EMBREE_INSTALL = "apt-get install libembree-dev (Debian/Ubuntu), or set EMBREE_DIR to an Embree 3 install"
 
@@ -261,7 +263,7 @@ def report_rays(out: dict, mach: str) -> list[dict]:
     print(f"\nRay throughput, bunny ({out['triangles']} triangles): incoherent = random origins in the box "
           f"enlarged 2x, uniform directions; coherent = pinhole camera {out['res']}x{out['res']}")
     print(f"machine: {mach}")
-    print(f"ours: setup.py's flags ({' '.join(f for f in CXX_FLAGS if f.startswith(('-O', '-march')))}); "
+    print(f"ours: setup.py's flags ({' '.join(f for f in CXX_FLAGS if f.startswith(('-O', '-march', '-mtune', '-mprefer')))}); "
           + (f"Embree {out['embree_version']} (chooses its ISA at run time; CPU has {simd_flags()})"
              if out["embree"] else "Embree: skipped"))
     print("Mrays/s, best of the repeats; Embree x1 = rtcIntersect1/rtcOccluded1 per ray (as our renderer "

@@ -23,18 +23,19 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from bench_rays import CSRC, CXX_FLAGS, RESULTS, compile_cached, print_table  # noqa: E402
+from bench_rays import CSRC, CXX_FLAGS, RESULTS, build_flags, compile_cached, print_table  # noqa: E402
 from machine import machine, simd, write_csv  # noqa: E402
 
 SOURCE = HERE / "simd" / "simd_stages.cpp"
-# setup.py's release flags without its -march (chosen per build below).
-BASE_FLAGS = [f for f in CXX_FLAGS if not f.startswith("-march")]
-ISAS = {"native": "-march=native", "avx2": "-march=x86-64-v3", "portable": "-march=x86-64"}
+# setup.py's release flags without its target and tuning (chosen per build below: native
+# with the extension's tuning).
+BASE_FLAGS = [f for f in CXX_FLAGS if not f.startswith(("-march", "-mtune", "-mprefer-vector-width"))]
+ISAS = {"native": " ".join(build_flags.target_flags("native")), "avx2": "-march=x86-64-v3", "portable": "-march=x86-64"}
 
 
 def compile_stages(isa: str, cxx: str) -> Path:
     """Compile simd_stages.cpp for `isa`; cached by the sources' mtimes and the command."""
-    cmd = [cxx, *BASE_FLAGS, ISAS[isa], f"-I{CSRC}", str(SOURCE)]
+    cmd = [cxx, *BASE_FLAGS, *ISAS[isa].split(), f"-I{CSRC}", str(SOURCE)]
     return compile_cached(f"simd_stages_{isa}", cmd, [SOURCE] + sorted(CSRC.glob("*.h")),
                           "the SIMD stage benchmark")
 

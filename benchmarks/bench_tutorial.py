@@ -34,7 +34,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from machine import cpu_model, write_csv  # noqa: E402
+from machine import built_for, cpu_model, write_csv  # noqa: E402
 import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
@@ -72,7 +72,7 @@ def run_ours(cfg: dict, marks: dict) -> tuple:
         times.append(time.perf_counter() - start)
     final = [float(x) for x in param.detach()]
     marks["done"] = time.time()
-    return final, times, losses, {"torch_threads": f"{torch.get_num_threads()} (built for {tr._C.build_isa})"}
+    return final, times, losses, {"torch_threads": f"{torch.get_num_threads()} (built for {built_for()})"}
 
 
 def run_mitsuba(cfg: dict, marks: dict) -> tuple:

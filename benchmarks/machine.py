@@ -31,6 +31,14 @@ def simd(levels=("avx512f", "avx2", "avx"), flags=None) -> str:
     return next((f for f in levels if f in flags), "")
 
 
+def built_for() -> str:
+    """What torch_rbpt's extension was compiled for: its widest vector extension and the
+    tuning setup.py chose, e.g. 'avx512, tuned for sapphirerapids'."""
+    from torch_rbpt import _C
+    tune = getattr(_C, "build_tune", "")
+    return f"{_C.build_isa}, tuned for {tune}" if tune else _C.build_isa
+
+
 def cpu_model() -> str:
     """The CPU's model name from /proc/cpuinfo, with its widest vector extension."""
     name, flags = _cpuinfo()

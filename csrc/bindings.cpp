@@ -940,6 +940,12 @@ PYBIND11_MODULE(_C, m) {
 #else
     m.attr("build_isa") = "sse2";
 #endif
+    // The -mtune it was compiled with where setup.py chose one (torch_rbpt/build_flags.py),
+    // else "" (GCC's own for the target).
+#ifndef RBPT_TUNE
+#define RBPT_TUNE ""
+#endif
+    m.attr("build_tune") = RBPT_TUNE;
     py::class_<Scene>(m, "Scene")
         .def(py::init<>())
         .def("add_param",

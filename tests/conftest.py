@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torch_rbpt as tr
+from torch_rbpt import build_flags
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "scenes"
@@ -146,9 +147,8 @@ def l2_gradient_samples(scene, key: str, spp: int, n: int, mean_spp: int):
     return expected, torch.tensor(replay, dtype=dtype), torch.tensor(independent, dtype=dtype)
 
 
-# setup.py's optimised flags, without -march (the caller chooses it).
-OPT_FLAGS = ["-std=c++17", "-fopenmp", "-O3", "-DNDEBUG", "-fwrapv", "-ffp-contract=off", "-fno-math-errno",
-             "-fno-trapping-math"]
+# setup.py's optimised flags, without the target (the caller chooses it).
+OPT_FLAGS = ["-std=c++17", "-fopenmp", "-fwrapv", *build_flags.OPTIMISED]
 
 
 def assert_marked_loops_vectorise(source: str, pragma: str, march: str, tmp_path: Path) -> int:
@@ -159,7 +159,7 @@ def assert_marked_loops_vectorise(source: str, pragma: str, march: str, tmp_path
     path = ROOT / "csrc" / source
     lines = path.read_text().splitlines()
     loops = [i + 2 for i, line in enumerate(lines) if line.strip() == pragma]  # the for's line
-    out = subprocess.run(["g++", *OPT_FLAGS, f"-march={march}", f"-I{ROOT / 'csrc'}", "-c", str(path),
+    out = subprocess.run(["g++", *OPT_FLAGS, *build_flags.target_flags(march), f"-I{ROOT / 'csrc'}", "-c", str(path),
                           "-o", str(tmp_path / "marked.o"), "-fopt-info-vec-all"],
                          capture_output=True, text=True, check=True).stderr.splitlines()
     for line in loops:
