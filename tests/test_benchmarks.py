@@ -45,7 +45,6 @@ def test02_time_at_error():
     assert t == pytest.approx(0.25) and ext
 
 
-
 @pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
 def test03_variance_split_by_path_length(tmp_path):
     bench = load_benchmark("bench_variance")
