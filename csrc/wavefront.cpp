@@ -23,17 +23,32 @@ ShadeInputs shade_inputs(const BSDF &b, WavefrontScene::Lane lane) {
     return {base ? &b.reflectance : &b.specular_reflectance, t};
 }
 
+/// The bitmap texture input `r` reads where the shade stage can look it up in lanes
+/// (bitmap_stage: bilinear, one or three channels, fewer than 2^31 values), else null.
+const Texture *lane_bitmap(const Scene &scene, const TextureRef *r) {
+    if (!r || r->texture < 0 || r->attribute >= 0) return nullptr;
+    const Texture &t = scene.textures[size_t(r->texture)];
+    const Bitmap &bm = t.bitmap;
+    const bool fits = int64_t(bm.width) * bm.height * bm.channels < (int64_t(1) << 31);
+    return t.type == TextureType::Bitmap && !bm.nearest && (bm.channels == 1 || bm.channels == 3) && fits ? &t : nullptr;
+}
+
 }  // namespace
 
 void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *watched) {
     std::vector<char> excluded(scene.bsdfs.size(), 0);
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
         const ShadeInputs in = shade_inputs(scene.bsdfs[i], WavefrontScene::Lane(ws.materials[i].lane));
-        for (const TextureRef *r : {in.a, in.t})
+        for (const TextureRef *r : {in.a, in.t}) {
             if (r && r->param >= 0 && watched[size_t(r->param)]) excluded[i] = 1;
+            const Texture *t = lane_bitmap(scene, r);
+            if (t && watched[size_t(t->bitmap.param)]) excluded[i] = 1;
+        }
     }
     for (size_t p = 0; p < ws.prim_quick.size(); ++p)
         if (excluded[size_t(ws.prim_material[p])]) ws.prim_quick[p] = 0;
+    auto gone = [&](const WavefrontScene::BitmapLookup &bm) { return excluded[size_t(bm.material)] != 0; };
+    ws.bitmaps.erase(std::remove_if(ws.bitmaps.begin(), ws.bitmaps.end(), gone), ws.bitmaps.end());
     ws.quick_watched = watched;
 }
 
@@ -101,19 +116,28 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     if (!any_lanes) return std::nullopt;
     for (const WavefrontScene::Material &m : ws.materials)
         ws.any_ggx = ws.any_ggx || (m.rough != 0.f && m.beckmann == 0.f);
-    // The shade stage's constant lookups: per material whether its inputs are constants and
-    // their values (read without the parameter log: the quick lookups run in renders
-    // without one), and per primitive its material where it does not emit.
+    // The shade stage's lookups in lanes: per material whether its inputs are constants, or
+    // a bilinear bitmap (a) and a constant (t), and the constants' values (read without the
+    // parameter log: the quick lookups run in renders without one, or whose log does not
+    // watch them: exclude_watched_inputs()), and per primitive its material where it does not
+    // emit.
     std::vector<int> quick(scene.bsdfs.size(), 0);
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
         const ShadeInputs in = shade_inputs(scene.bsdfs[i], WavefrontScene::Lane(ws.materials[i].lane));
         auto constant = [](const TextureRef *r) { return !r || (r->texture < 0 && r->attribute < 0 && r->param >= 0); };
-        quick[i] = ws.materials[i].lane != WavefrontScene::Aside && constant(in.a) && constant(in.t);
+        const Texture *bitmap = lane_bitmap(scene, in.a);
+        quick[i] = ws.materials[i].lane != WavefrontScene::Aside && (constant(in.a) || bitmap) && constant(in.t);
         auto value = [&](const TextureRef *r) {
             return Params<RGB<float>>::value_of(ctx.params.data[size_t(r->param)], ctx.params.numel[size_t(r->param)]);
         };
         WavefrontScene::Material &m = ws.materials[i];
-        if (quick[i]) {
+        if (quick[i] && bitmap) {
+            const Bitmap &bm = bitmap->bitmap;
+            WavefrontScene::BitmapLookup lookup{int(i), ctx.params.data[size_t(bm.param)], bm.width, bm.height,
+                                                bm.channels, bm.wrap, bitmap->has_to_uv, {}};
+            std::memcpy(lookup.to_uv, bitmap->to_uv, sizeof lookup.to_uv);
+            ws.bitmaps.push_back(lookup);
+        } else if (quick[i]) {
             RGB<float> va = value(in.a);
             m.ar = va[0], m.ag = va[1], m.ab = va[2];
         }
@@ -1480,9 +1504,84 @@ InteractionStage interaction_stage_for(const WavefrontScene &ws) {
     }, ws.any_normals, ws.any_uv);
 }
 
-/// The shade stage for the lanes whose vertex needs only constant lookups
+/// Bitmap::wrap_pair in lanes: the texel indices i and i + 1 wrapped into [0, n). The
+/// remainder of i by the wrap's period from a float quotient (exact for |i| < 2^24, the
+/// quotient's rounding corrected), as GCC does not vectorise an integer division.
+template <WrapMode Wrap>
+RBPT_INLINE void wrap_pair_lanes(int i, int n, int &w0, int &w1) {
+    if constexpr (Wrap == WrapMode::Clamp) {
+        w0 = std::clamp(i, 0, n - 1), w1 = std::clamp(i, -1, n - 2) + 1;
+    } else {
+        const int period = Wrap == WrapMode::Repeat ? n : 2 * n;
+        const int q = int(std::floor(float(i) / float(period)));
+        int r = i - q * period;
+        r = r < 0 ? r + period : r;
+        r = r >= period ? r - period : r;
+        const int r1 = r + 1 == period ? 0 : r + 1;
+        w0 = r < n ? r : period - 1 - r;  // (mirrored in the period's second half)
+        w1 = r1 < n ? r1 : period - 1 - r1;
+    }
+}
+
+/// The lookups of bitmap `bm` for the lanes [0, n) of its material that the vector stage
+/// shades (shade 1): eval_bitmap()'s bilinear lookup and Params::gather()'s sum, operation
+/// for operation, in SIMD lanes over the list of those lanes (padded to whole vectors), into
+/// their reflectance a. A lane whose texel coordinates reach 2^22 in size, or are not finite,
+/// is left to the shade stage's own code (shade 0).
+template <WrapMode Wrap>
+void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm) {
+    constexpr int B = WavefrontBatch;
+    alignas(64) int on[B], list[B];
+    const int material = bm.material;
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) on[k] = b.shade[k] != 0 && b.mat[k] == material ? 1 : 0;
+    const int m = simd::select_indices(on, n, 1, list);
+    if (m == 0) return;
+    const int padded = simd::pad_indices(list, m);
+    alignas(64) float u[B], v[B], ar[B], ag[B], ab[B], ok[B];
+    for (int j = 0; j < padded; ++j) u[j] = b.uvx[list[j]], v[j] = b.uvy[list[j]];
+    const float *texels = bm.texels;
+    const int width = bm.width, height = bm.height, channels = bm.channels;
+    const float to_uv = bm.has_to_uv ? 1.f : 0.f;  // (a float flag: see vertex_stage)
+    const float m00 = bm.to_uv[0][0], m01 = bm.to_uv[0][1], m02 = bm.to_uv[0][2];
+    const float m10 = bm.to_uv[1][0], m11 = bm.to_uv[1][1], m12 = bm.to_uv[1][2];
+    // (Three channels, or one for all three: the texel's stride and its channels' offsets.)
+    const int g_off = channels == 3 ? 1 : 0, b_off = channels == 3 ? 2 : 0;
+#pragma GCC ivdep
+    for (int j = 0; j < padded; ++j) {
+        // Texture::map_uv, then eval_bitmap's texel coordinates and weights.
+        const float mu = m00 * u[j] + m01 * v[j] + m02, mv = m10 * u[j] + m11 * v[j] + m12;
+        float x = (to_uv != 0.f ? mu : u[j]) * float(width), y = (to_uv != 0.f ? mv : v[j]) * float(height);
+        x -= 0.5f;
+        y -= 0.5f;
+        float inside = std::abs(x) < 4194304.f ? 1.f : 0.f;
+        inside = std::abs(y) < 4194304.f ? inside : 0.f;
+        x = inside != 0.f ? x : 0.f, y = inside != 0.f ? y : 0.f;
+        const float fx = std::floor(x), fy = std::floor(y);
+        const float wx1 = x - fx, wy1 = y - fy, wx0 = 1.f - wx1, wy0 = 1.f - wy1;
+        int i0, i1, j0, j1;
+        wrap_pair_lanes<Wrap>(int(fx), width, i0, i1);
+        wrap_pair_lanes<Wrap>(int(fy), height, j0, j1);
+        const int t0 = (j0 * width + i0) * channels, t1 = (j0 * width + i1) * channels;
+        const int t2 = (j1 * width + i0) * channels, t3 = (j1 * width + i1) * channels;
+        const float w0 = wx0 * wy0, w1 = wx1 * wy0, w2 = wx0 * wy1, w3 = wx1 * wy1;
+        // Params::gather's sum, from zero, texel by texel.
+        ar[j] = (((0.f + w0 * texels[t0]) + w1 * texels[t1]) + w2 * texels[t2]) + w3 * texels[t3];
+        ag[j] = (((0.f + w0 * texels[t0 + g_off]) + w1 * texels[t1 + g_off]) + w2 * texels[t2 + g_off]) + w3 * texels[t3 + g_off];
+        ab[j] = (((0.f + w0 * texels[t0 + b_off]) + w1 * texels[t1 + b_off]) + w2 * texels[t2 + b_off]) + w3 * texels[t3 + b_off];
+        ok[j] = inside;
+    }
+    for (int j = 0; j < m; ++j) {
+        const int k = list[j];
+        b.ar[k] = ar[j], b.ag[k] = ag[j], b.ab[k] = ab[j];
+        b.shade[k] = ok[j] != 0.f ? 1 : 0;
+    }
+}
+
+/// The shade stage for the lanes whose vertex needs only lookups in lanes
 /// (WavefrontScene::prim_quick): shaded by the vector stage (shade 1) with the inputs of
-/// its material; the other lanes get shade 0, for the shade stage's own code.
+/// its material, constants or a bitmap's (bitmap_stage); the other lanes get shade 0, for
+/// the shade stage's own code.
 void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws) {
     const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -1500,6 +1599,13 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws) {
         const WavefrontScene::Material &mat = mats[m];
         b.ar[k] = mat.ar, b.ag[k] = mat.ag, b.ab[k] = mat.ab;
         b.tr[k] = mat.tr, b.tg[k] = mat.tg, b.tb[k] = mat.tb;
+    }
+    for (const WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
+        switch (bm.wrap) {
+            case WrapMode::Repeat: bitmap_stage<WrapMode::Repeat>(b, n, bm); break;
+            case WrapMode::Mirror: bitmap_stage<WrapMode::Mirror>(b, n, bm); break;
+            case WrapMode::Clamp: bitmap_stage<WrapMode::Clamp>(b, n, bm); break;
+        }
     }
 }
 

@@ -87,9 +87,22 @@ struct WavefrontScene {
         float aside = 0.f;
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
+    /// A material whose input a is a bilinear bitmap (and t a constant, or none): the shade
+    /// stage looks it up in lanes (bitmap_stage) for its vertices in prim_quick, from the
+    /// bitmap's texels (the render's parameter data).
+    struct BitmapLookup {
+        int material;
+        const float *texels;  ///< (height, width, channels), row 0 on top
+        int width, height, channels;
+        WrapMode wrap;
+        bool has_to_uv;
+        float to_uv[2][3];
+    };
+    std::vector<BitmapLookup> bitmaps;
     /// Per primitive (triangles, then Geometry::analytic): its material, and whether the shade
-    /// stage's work for it is a constant lookup (1: a BSDF of the vector stage whose inputs are
-    /// constants, Material::a and t, on a shape that does not emit; else 0).
+    /// stage's work for it is a lookup in lanes (1: a BSDF of the vector stage whose inputs are
+    /// constants, Material::a and t, or a bitmap in `bitmaps`, on a shape that does not emit;
+    /// else 0).
     std::vector<int> prim_material, prim_quick;
     /// Per primitive, then one entry more for a ray that escaped: 1 where the ray finds an
     /// emitter there (the shape's, or the environment), else 0.
