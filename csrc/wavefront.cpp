@@ -36,19 +36,20 @@ const Texture *lane_bitmap(const Scene &scene, const TextureRef *r) {
 }  // namespace
 
 void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *watched) {
-    std::vector<char> excluded(scene.bsdfs.size(), 0);
+    std::vector<char> excluded(scene.bsdfs.size(), 0), recorded(scene.bsdfs.size(), 0);
     for (size_t i = 0; i < scene.bsdfs.size(); ++i) {
-        const ShadeInputs in = shade_inputs(scene.bsdfs[i], WavefrontScene::Lane(ws.materials[i].lane));
-        for (const TextureRef *r : {in.a, in.t}) {
+        const auto lane = WavefrontScene::Lane(ws.materials[i].lane);
+        const ShadeInputs in = shade_inputs(scene.bsdfs[i], lane);
+        for (const TextureRef *r : {in.a, in.t})
             if (r && r->param >= 0 && watched[size_t(r->param)]) excluded[i] = 1;
-            const Texture *t = lane_bitmap(scene, r);
-            if (t && watched[size_t(t->bitmap.param)]) excluded[i] = 1;
-        }
+        const Texture *t = lane_bitmap(scene, in.a);
+        if (t && watched[size_t(t->bitmap.param)]) (linear_in_inputs(lane) ? recorded : excluded)[i] = 1;
     }
     for (size_t p = 0; p < ws.prim_quick.size(); ++p)
         if (excluded[size_t(ws.prim_material[p])]) ws.prim_quick[p] = 0;
     auto gone = [&](const WavefrontScene::BitmapLookup &bm) { return excluded[size_t(bm.material)] != 0; };
     ws.bitmaps.erase(std::remove_if(ws.bitmaps.begin(), ws.bitmaps.end(), gone), ws.bitmaps.end());
+    for (WavefrontScene::BitmapLookup &bm : ws.bitmaps) bm.record = recorded[size_t(bm.material)] != 0;
     ws.quick_watched = watched;
 }
 
@@ -133,8 +134,8 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         WavefrontScene::Material &m = ws.materials[i];
         if (quick[i] && bitmap) {
             const Bitmap &bm = bitmap->bitmap;
-            WavefrontScene::BitmapLookup lookup{int(i), ctx.params.data[size_t(bm.param)], bm.width, bm.height,
-                                                bm.channels, bm.wrap, bitmap->has_to_uv, {}};
+            WavefrontScene::BitmapLookup lookup{int(i), bm.param, ctx.params.data[size_t(bm.param)], bm.width,
+                                                bm.height, bm.channels, bm.wrap, bitmap->has_to_uv, {}};
             std::memcpy(lookup.to_uv, bitmap->to_uv, sizeof lookup.to_uv);
             ws.bitmaps.push_back(lookup);
         } else if (quick[i]) {
@@ -1527,9 +1528,12 @@ RBPT_INLINE void wrap_pair_lanes(int i, int n, int &w0, int &w1) {
 /// shades (shade 1): eval_bitmap()'s bilinear lookup and Params::gather()'s sum, operation
 /// for operation, in SIMD lanes over the list of those lanes (padded to whole vectors), into
 /// their reflectance a. A lane whose texel coordinates reach 2^22 in size, or are not finite,
-/// is left to the shade stage's own code (shade 0).
-template <WrapMode Wrap>
-void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm) {
+/// is left to the shade stage's own code (shade 0). With Record (the backward pass
+/// differentiates the bitmap), each lookup is kept as the WavefrontVertex the shade stage's
+/// own code keeps: the radiance before the vertex, the value, and the read (the four texels'
+/// offsets and weights, as Params::bilinear logs them).
+template <WrapMode Wrap, bool Record>
+void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, WavefrontRecord *record) {
     constexpr int B = WavefrontBatch;
     alignas(64) int on[B], list[B];
     const int material = bm.material;
@@ -1539,6 +1543,8 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm) {
     if (m == 0) return;
     const int padded = simd::pad_indices(list, m);
     alignas(64) float u[B], v[B], ar[B], ag[B], ab[B], ok[B];
+    alignas(64) int read_t[4][B];  // (Record: the texels' offsets and weights)
+    alignas(64) float read_w[4][B];
     for (int j = 0; j < padded; ++j) u[j] = b.uvx[list[j]], v[j] = b.uvy[list[j]];
     const float *texels = bm.texels;
     const int width = bm.width, height = bm.height, channels = bm.channels;
@@ -1570,11 +1576,21 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm) {
         ag[j] = (((0.f + w0 * texels[t0 + g_off]) + w1 * texels[t1 + g_off]) + w2 * texels[t2 + g_off]) + w3 * texels[t3 + g_off];
         ab[j] = (((0.f + w0 * texels[t0 + b_off]) + w1 * texels[t1 + b_off]) + w2 * texels[t2 + b_off]) + w3 * texels[t3 + b_off];
         ok[j] = inside;
+        if constexpr (Record) {
+            read_t[0][j] = t0, read_t[1][j] = t1, read_t[2][j] = t2, read_t[3][j] = t3;
+            read_w[0][j] = w0, read_w[1][j] = w1, read_w[2][j] = w2, read_w[3][j] = w3;
+        }
     }
     for (int j = 0; j < m; ++j) {
         const int k = list[j];
         b.ar[k] = ar[j], b.ag[k] = ag[j], b.ab[k] = ab[j];
         b.shade[k] = ok[j] != 0.f ? 1 : 0;
+        if (!Record || ok[j] == 0.f) continue;
+        ParamRead read;
+        read.param = bm.param, read.channels = channels, read.n = 4;
+        for (int i = 0; i < 4; ++i) read.offset[i] = read_t[i][j], read.weight[i] = read_w[i][j];
+        record->vertices.push_back({b.seq[k], WavefrontVertex::Input, {b.Lr[k], b.Lg[k], b.Lb[k]}, {ar[j], ag[j], ab[j]}, read});
+        b.record_reflect[k] = int(record->vertices.size()) - 1;
     }
 }
 
@@ -1582,7 +1598,7 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm) {
 /// (WavefrontScene::prim_quick): shaded by the vector stage (shade 1) with the inputs of
 /// its material, constants or a bitmap's (bitmap_stage); the other lanes get shade 0, for
 /// the shade stage's own code.
-void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws) {
+void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecord *record) {
     const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
     const WavefrontScene::Material *mats = ws.materials.data();
     const uint32_t n_prims = uint32_t(ws.prim_material.size());
@@ -1601,11 +1617,14 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws) {
         b.tr[k] = mat.tr, b.tg[k] = mat.tg, b.tb[k] = mat.tb;
     }
     for (const WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
-        switch (bm.wrap) {
-            case WrapMode::Repeat: bitmap_stage<WrapMode::Repeat>(b, n, bm); break;
-            case WrapMode::Mirror: bitmap_stage<WrapMode::Mirror>(b, n, bm); break;
-            case WrapMode::Clamp: bitmap_stage<WrapMode::Clamp>(b, n, bm); break;
-        }
+        with_flags([&](auto recorded) {
+            constexpr bool Record = decltype(recorded)::value;
+            switch (bm.wrap) {
+                case WrapMode::Repeat: return bitmap_stage<WrapMode::Repeat, Record>(b, n, bm, record);
+                case WrapMode::Mirror: return bitmap_stage<WrapMode::Mirror, Record>(b, n, bm, record);
+                case WrapMode::Clamp: return bitmap_stage<WrapMode::Clamp, Record>(b, n, bm, record);
+            }
+        }, bm.record && record);
     }
 }
 
@@ -1812,7 +1831,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // (The vertices needing only constants are set up in lanes, in renders without a
         // parameter log or whose log's watched inputs exclude_watched_inputs() left out.)
         const bool quick = !log || log->watched == ws.quick_watched;
-        if (quick) quick_shade_stage(b, n, ws);
+        if (quick) quick_shade_stage(b, n, ws, log ? record : nullptr);
         // The lanes this loop visits (listed in lanes: a branch per lane mispredicts): those
         // at their last vertex among others that go on, and those the quick stage left.
         alignas(64) int visit[B], visit_lanes[B];

@@ -89,14 +89,18 @@ struct WavefrontScene {
     std::vector<Material> materials;  ///< per Scene::bsdfs
     /// A material whose input a is a bilinear bitmap (and t a constant, or none): the shade
     /// stage looks it up in lanes (bitmap_stage) for its vertices in prim_quick, from the
-    /// bitmap's texels (the render's parameter data).
+    /// bitmap's texels (the render's parameter data). Where the backward pass differentiates
+    /// the bitmap (exclude_watched_inputs()), a lane linear in it records each lookup as the
+    /// WavefrontVertex the shade stage's own code would (`record`).
     struct BitmapLookup {
         int material;
-        const float *texels;  ///< (height, width, channels), row 0 on top
+        int param;            ///< the bitmap's parameter
+        const float *texels;  ///< its data, (height, width, channels), row 0 on top
         int width, height, channels;
         WrapMode wrap;
         bool has_to_uv;
         float to_uv[2][3];
+        bool record = false;
     };
     std::vector<BitmapLookup> bitmaps;
     /// Per primitive (triangles, then Geometry::analytic): its material, and whether the shade
@@ -168,7 +172,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
 
 /// Takes out of ws.prim_quick the primitives whose material's shade-stage inputs read a
 /// parameter marked in `watched` (render_bwd keeps their reads), so that the other vertices
-/// are set up in lanes in renders logging the reads of those parameters.
+/// are set up in lanes in renders logging the reads of those parameters; but for a bitmap
+/// looked up in lanes (WavefrontScene::bitmaps) that is the only watched input of a lane
+/// linear in it, whose lookups the lanes record themselves.
 void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *watched);
 
 /// One sample to trace: its pixel, the pixel's seeds and its index among the pixel's samples.
