@@ -969,11 +969,6 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         }
     }
     const float *q_rox = q.rox, *q_roy = q.roy, *q_roz = q.roz, *q_ix = q.inv_x, *q_iy = q.inv_y, *q_iz = q.inv_z;
-    // Whether ray k enters half h's box before its nearest hit so far (NodeTest's operations).
-    auto enters = [&](int h, int k) __attribute__((always_inline)) {
-        const Vec3 o{q_rox[k], q_roy[k], q_roz[k]}, inv_d{q_ix[k], q_iy[k], q_iz[k]};
-        return enters_box(box_lo[h], box_hi[h], o, inv_d, q_tmin[k], q_best_t[k] < q_tmax[k] ? q_best_t[k] : q_tmax[k], 1.0001f);
-    };
     // Ray k against triangles [from, to) of the pass.
     auto test_range = [&](int k, auto from, auto to) __attribute__((always_inline)) {
         constexpr int I0 = decltype(from)::value, I1 = decltype(to)::value;
@@ -1037,27 +1032,155 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
     const Bounds first_box{{box_lo[0][0], box_lo[0][1], box_lo[0][2]}, {box_hi[0][0], box_hi[0][1], box_hi[0][2]}};
     const bool chunked = H == 2 || first_box.area() < q.cull_area;
     const int chunks = chunked ? n / FlatChunk * FlatChunk : 0;
-    for (int k0 = 0; k0 < chunks; k0 += FlatChunk) {
-        int a = 0, b = 0;
-#pragma GCC ivdep
-        for (int l = 0; l < FlatChunk; ++l) a |= enters(0, k0 + l);
-        if constexpr (H == 2) {
-#pragma GCC ivdep
-            for (int l = 0; l < FlatChunk; ++l) b |= enters(1, k0 + l);
+    // Whether one of the chunk's rays enters half h's box before its nearest hit so far
+    // (NodeTest's operations, enters_box()) in lanes, whose OR the vectoriser takes across
+    // them in a dozen shuffles; with AVX-512 the chunk is one register and that OR a test of
+    // the compare's mask (cornell-box 2% faster).
+    auto chunk_enters = [&](int h, int k0) __attribute__((always_inline)) {
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+        static_assert(FlatChunk == 16, "a chunk is one AVX-512 register of rays");
+        __m512 t0 = _mm512_loadu_ps(q_tmin + k0);
+        __m512 t1 = _mm512_min_ps(_mm512_loadu_ps(q_best_t + k0), _mm512_loadu_ps(q_tmax + k0));
+        const float *o[3] = {q_rox, q_roy, q_roz}, *inv[3] = {q_ix, q_iy, q_iz};
+        for (int axis = 0; axis < 3; ++axis) {
+            const __m512 inv_d = _mm512_loadu_ps(inv[axis] + k0), origin = _mm512_loadu_ps(o[axis] + k0);
+            const __mmask16 neg = _mm512_movepi32_mask(_mm512_castps_si512(inv_d));
+            const __m512 lo = _mm512_set1_ps(box_lo[h][axis]), hi = _mm512_set1_ps(box_hi[h][axis]);
+            const __m512 t_near = _mm512_mul_ps(_mm512_sub_ps(_mm512_mask_blend_ps(neg, lo, hi), origin), inv_d);
+            const __m512 t_far = _mm512_mul_ps(_mm512_sub_ps(_mm512_mask_blend_ps(neg, hi, lo), origin), inv_d);
+            t0 = _mm512_max_ps(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
+            t1 = _mm512_min_ps(t_far, t1);
         }
+        return _mm512_cmp_ps_mask(t0, _mm512_mul_ps(t1, _mm512_set1_ps(1.0001f)), _CMP_LE_OQ) != 0 ? 1 : 0;
+#else
+        // Whether ray k enters half h's box before its nearest hit so far (NodeTest's operations).
+        auto enters = [&](int k) __attribute__((always_inline)) {
+            const Vec3 o{q_rox[k], q_roy[k], q_roz[k]}, inv_d{q_ix[k], q_iy[k], q_iz[k]};
+            return enters_box(box_lo[h], box_hi[h], o, inv_d, q_tmin[k], q_best_t[k] < q_tmax[k] ? q_best_t[k] : q_tmax[k], 1.0001f);
+        };
+        int any = 0;
+#pragma GCC ivdep  // without AVX-512
+        for (int l = 0; l < FlatChunk; ++l) any |= enters(k0 + l);
+        return any;
+#endif
+    };
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+    // With AVX-512, a chunk's test_range() written out in one register of rays: the same
+    // operations in the same order (so the same results), but each vertex coordinate picked
+    // by the ray's axis permutation with one permute from the triangle's nine coordinates,
+    // where the vectoriser's picks take three or four instructions. (With the chunks' box
+    // tests above, one thread, 256 px, 16 spp, Intel Xeon: cornell-box 0.366 -> 0.348 s, the
+    // cbox 0.298 -> 0.288, textured 0.291 -> 0.284, glossy 0.357 -> 0.350; images bitwise.)
+    __m512 tri[G];
+    for (int i = 0; i < G; ++i) tri[i] = _mm512_maskz_loadu_ps(__mmask16(0x1ff), &vert[i][0][0]);
+    auto test_chunk = [&](int k0, auto from, auto to) __attribute__((always_inline)) {
+        constexpr int I0 = decltype(from)::value, I1 = decltype(to)::value;
+        const __m512i kx = _mm512_loadu_si512(q_kx + k0), ky = _mm512_loadu_si512(q_ky + k0);
+        const __m512i kz = _mm512_loadu_si512(q_kz + k0);
+        __m512i ix[3], iy[3], iz[3];  // vertex j's coordinate along the ray's x, y and z
+        for (int j = 0; j < 3; ++j) {
+            const __m512i base = _mm512_set1_epi32(3 * j);
+            ix[j] = _mm512_add_epi32(kx, base), iy[j] = _mm512_add_epi32(ky, base), iz[j] = _mm512_add_epi32(kz, base);
+        }
+        const __m512 ox = _mm512_loadu_ps(q_ox + k0), oy = _mm512_loadu_ps(q_oy + k0), oz = _mm512_loadu_ps(q_oz + k0);
+        const __m512 sx = _mm512_loadu_ps(q_sx + k0), sy = _mm512_loadu_ps(q_sy + k0), sz = _mm512_loadu_ps(q_sz + k0);
+        const __m512 tmin = _mm512_loadu_ps(q_tmin + k0), tmax = _mm512_loadu_ps(q_tmax + k0);
+        const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
+        __m512 retrace = _mm512_loadu_ps(q_retrace + k0), best_t = _mm512_loadu_ps(q_best_t + k0);
+        __m512 best_u = _mm512_loadu_ps(q_best_u + k0), best_v = _mm512_loadu_ps(q_best_v + k0);
+        __m512 best_inv_det = Deferred ? _mm512_loadu_ps(q_best_inv_det + k0) : zero;
+        __m512i best = _mm512_loadu_si512(q_best + k0);
+        for (int i = I0; i < I1; ++i) {
+            __m512 x[3], y[3], z[3];
+            for (int j = 0; j < 3; ++j) {
+                z[j] = _mm512_sub_ps(_mm512_permutexvar_ps(iz[j], tri[i]), oz);
+                x[j] = _mm512_sub_ps(_mm512_sub_ps(_mm512_permutexvar_ps(ix[j], tri[i]), ox), _mm512_mul_ps(sx, z[j]));
+                y[j] = _mm512_sub_ps(_mm512_sub_ps(_mm512_permutexvar_ps(iy[j], tri[i]), oy), _mm512_mul_ps(sy, z[j]));
+            }
+            const __m512 U = _mm512_sub_ps(_mm512_mul_ps(x[2], y[1]), _mm512_mul_ps(y[2], x[1]));
+            const __m512 Ve = _mm512_sub_ps(_mm512_mul_ps(x[0], y[2]), _mm512_mul_ps(y[0], x[2]));
+            const __m512 We = _mm512_sub_ps(_mm512_mul_ps(x[1], y[0]), _mm512_mul_ps(y[1], x[0]));
+            const __mmask16 edge = _mm512_cmp_ps_mask(U, zero, _CMP_EQ_OQ) | _mm512_cmp_ps_mask(Ve, zero, _CMP_EQ_OQ) |
+                                   _mm512_cmp_ps_mask(We, zero, _CMP_EQ_OQ);
+            // (std::min(a, b) is b < a ? b : a, _mm512_min_ps(b, a); std::max likewise.)
+            const __m512 lo = _mm512_min_ps(We, _mm512_min_ps(Ve, U)), hi = _mm512_max_ps(We, _mm512_max_ps(Ve, U));
+            const __m512 det = _mm512_add_ps(_mm512_add_ps(U, Ve), We);
+            __mmask16 hit = (_mm512_cmp_ps_mask(lo, zero, _CMP_GE_OQ) | _mm512_cmp_ps_mask(hi, zero, _CMP_LE_OQ)) &
+                            _mm512_cmp_ps_mask(det, zero, _CMP_NEQ_UQ);
+            const __m512 T = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(U, _mm512_mul_ps(sz, z[0])), _mm512_mul_ps(Ve, _mm512_mul_ps(sz, z[1]))),
+                                           _mm512_mul_ps(We, _mm512_mul_ps(sz, z[2])));
+            const __m512 inv_det = _mm512_div_ps(one, det);
+            const __m512 t = _mm512_mul_ps(T, inv_det);
+            hit &= _mm512_cmp_ps_mask(t, tmin, _CMP_GT_OQ) & _mm512_cmp_ps_mask(t, tmax, _CMP_LT_OQ);
+            if constexpr (!Deferred) {
+                // t_error_bound()'s operations (its max_ps is _mm512_max_ps).
+                auto abs_max = [](const __m512 a[3]) {
+                    return _mm512_max_ps(_mm512_abs_ps(a[0]), _mm512_max_ps(_mm512_abs_ps(a[1]), _mm512_abs_ps(a[2])));
+                };
+                const __m512 g2 = _mm512_set1_ps(gamma(2)), g3 = _mm512_set1_ps(gamma(3)), g5 = _mm512_set1_ps(gamma(5));
+                const __m512 max_zt = _mm512_mul_ps(_mm512_abs_ps(sz), abs_max(z));
+                const __m512 max_xt = abs_max(x), max_yt = abs_max(y);
+                const __m512 delta_z = _mm512_mul_ps(g3, max_zt);
+                const __m512 delta_x = _mm512_mul_ps(g5, _mm512_add_ps(max_xt, max_zt));
+                const __m512 delta_y = _mm512_mul_ps(g5, _mm512_add_ps(max_yt, max_zt));
+                const __m512 delta_e = _mm512_mul_ps(_mm512_set1_ps(2.f), _mm512_add_ps(_mm512_mul_ps(g2, _mm512_mul_ps(max_xt, max_yt)),
+                                                                                      _mm512_add_ps(_mm512_mul_ps(delta_y, max_xt), _mm512_mul_ps(delta_x, max_yt))));
+                const __m512 e[3] = {U, Ve, We};
+                const __m512 max_e = abs_max(e);
+                const __m512 bound = _mm512_mul_ps(
+                    _mm512_mul_ps(_mm512_set1_ps(3.f), _mm512_add_ps(_mm512_mul_ps(g3, _mm512_mul_ps(max_e, max_zt)),
+                                                                    _mm512_add_ps(_mm512_mul_ps(delta_e, max_zt), _mm512_mul_ps(delta_z, max_e)))),
+                    _mm512_abs_ps(inv_det));
+                hit &= _mm512_cmp_ps_mask(t, bound, _CMP_GT_OQ);
+            }
+            retrace = _mm512_mask_mov_ps(retrace, edge, one);
+            // The nearest; a tie leaves the order to intersect()'s traversal.
+            retrace = _mm512_mask_mov_ps(retrace, hit & _mm512_cmp_ps_mask(t, best_t, _CMP_EQ_OQ), one);
+            const __mmask16 better = hit & _mm512_cmp_ps_mask(t, best_t, _CMP_LT_OQ);
+            best_t = _mm512_mask_mov_ps(best_t, better, t);
+            best_u = _mm512_mask_mov_ps(best_u, better, _mm512_mul_ps(Ve, inv_det));
+            best_v = _mm512_mask_mov_ps(best_v, better, _mm512_mul_ps(We, inv_det));
+            best = _mm512_mask_mov_epi32(best, better, _mm512_set1_epi32(int(ids[i])));
+            if constexpr (Deferred) best_inv_det = _mm512_mask_mov_ps(best_inv_det, better, inv_det);
+        }
+        _mm512_storeu_ps(q_retrace + k0, retrace), _mm512_storeu_ps(q_best_t + k0, best_t);
+        _mm512_storeu_ps(q_best_u + k0, best_u), _mm512_storeu_ps(q_best_v + k0, best_v);
+        _mm512_storeu_si512(q_best + k0, best);
+        if constexpr (Deferred) _mm512_storeu_ps(q_best_inv_det + k0, best_inv_det);
+    };
+    auto test_all = [&](int k0) __attribute__((always_inline)) { test_chunk(k0, First{}, End{}); };
+    auto test_first = [&](int k0) __attribute__((always_inline)) { test_chunk(k0, First{}, Half{}); };
+    auto test_second = [&](int k0) __attribute__((always_inline)) { test_chunk(k0, Half{}, End{}); };
+    const int full = n / FlatChunk * FlatChunk;  // (every full chunk, culled or not)
+#else
+    auto test_all = [&](int k0) __attribute__((always_inline)) {
+#pragma GCC ivdep  // without AVX-512
+        for (int l = 0; l < FlatChunk; ++l) test(k0 + l);
+    };
+    auto test_first = [&](int k0) __attribute__((always_inline)) {
+#pragma GCC ivdep  // without AVX-512
+        for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, First{}, Half{});
+    };
+    auto test_second = [&](int k0) __attribute__((always_inline)) {
+#pragma GCC ivdep  // without AVX-512
+        for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, Half{}, End{});
+    };
+    const int full = chunks;
+#endif
+    for (int k0 = 0; k0 < chunks; k0 += FlatChunk) {
+        int a = chunk_enters(0, k0), b = 0;
+        if constexpr (H == 2) b = chunk_enters(1, k0);
         if (H == 1 ? a : a && b) {
-#pragma GCC ivdep
-            for (int l = 0; l < FlatChunk; ++l) test(k0 + l);
+            test_all(k0);
         } else if (H == 2 && a) {
-#pragma GCC ivdep
-            for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, First{}, Half{});
+            test_first(k0);
         } else if (H == 2 && b) {
-#pragma GCC ivdep
-            for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, Half{}, End{});
+            test_second(k0);
         }
     }
+    for (int k0 = chunks; k0 < full; k0 += FlatChunk) test_all(k0);
 #pragma GCC ivdep
-    for (int k = chunks; k < n; ++k) test(k);
+    for (int k = full; k < n; ++k) test(k);
 }
 
 /// intersect_triangles()'s last test for each ray's nearest triangle hit from
