@@ -2006,10 +2006,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         // The shadow rays' tests one at a time where the lanes did not take them; `lit`: 1
         // where the emitter sample's contribution is added.
-        alignas(64) int lit[B], shadow_lanes_list[B];
+        // (With the masks, only the rays that enter one of the root's children: 59% of
+        // cornell-box's shadow rays enter none.)
+        alignas(64) int lit[B], test[B], shadow_lanes_list[B];
+        int n_lit = 0;
 #pragma GCC ivdep
-        for (int k = 0; k < n; ++k) lit[k] = b.shadow[k] != 0 ? 1 : 0;
-        const int n_shadow = shadow_lanes ? 0 : simd::select_indices(lit, n, 1, shadow_lanes_list);
+        for (int k = 0; k < n; ++k) {
+            lit[k] = b.shadow[k] != 0 ? 1 : 0;
+            n_lit += lit[k];
+        }
+        if (shadow_masks) {
+#pragma GCC ivdep
+            for (int k = 0; k < n; ++k) test[k] = lit[k] != 0 && root_mask[k] != 0 ? 1 : 0;
+        }
+        const int n_shadow = shadow_lanes ? 0 : simd::select_indices(shadow_masks ? test : lit, n, 1, shadow_lanes_list);
         for (int j = 0; j < n_shadow; ++j) {
             const int k = shadow_lanes_list[j];
             Ray ray;
@@ -2050,7 +2060,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         const int n_ended = simd::select_indices(dead, n, 1, ended);
         for (int j = 0; j < n_ended; ++j) finish(ended[j]);
         const int live = compact_lanes(b, n);
-        rays_traced += uint64_t(n_shadow);  // (Scene::occluded's count is a thread_local's)
+        rays_traced += uint64_t(shadow_lanes ? 0 : n_lit);  // (Scene::occluded's count is a thread_local's)
         // The paths that go on take their next vertex; the next samples start in the lanes
         // freed (or in the whole batch, once drained, without refill).
         for (int k = 0; k < live; ++k) ++b.depth[k];
