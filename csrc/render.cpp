@@ -483,7 +483,26 @@ private:
             wx[s] = v;
             lr[s] = double(L[k][0]), lg[s] = double(L[k][1]), lb[s] = double(L[k][2]);
         }
-        for (int j = 0; j < N; ++j) {
+        // The gaussian's five rows two at a time (each pixel's sum still adds the samples in
+        // order): their sums' chains of additions side by side (veach-mis 3-4% faster; the
+        // tent's three rows unchanged within noise, so they keep one at a time).
+        int j = 0;
+        for (; N >= 5 && j + 1 < N; j += 2) {
+            PixelSum *sum0 = &block.sums[block.index(win.x - Border, win.y + j - Border)];
+            PixelSum *sum1 = &block.sums[block.index(win.x - Border, win.y + j + 1 - Border)];
+            Row8 ar, ag, ab, aw, br, bg, bb, bw;
+            load_row<N>(sum0, ar, ag, ab, aw);
+            load_row<N>(sum1, br, bg, bb, bw);
+            const float *wy0 = &w.wy[size_t(j) * Batch], *wy1 = &w.wy[size_t(j + 1) * Batch];
+            for (int s = 0; s < r; ++s) {
+                const Row8 p = wx[s] * double(wy0[ks[s]]), q = wx[s] * double(wy1[ks[s]]);
+                ar += p * lr[s], ag += p * lg[s], ab += p * lb[s], aw += p;  // (p's own: p * 1)
+                br += q * lr[s], bg += q * lg[s], bb += q * lb[s], bw += q;
+            }
+            store_row<N>(sum0, ar, ag, ab, aw);
+            store_row<N>(sum1, br, bg, bb, bw);
+        }
+        for (; j < N; ++j) {
             PixelSum *sum = &block.sums[block.index(win.x - Border, win.y + j - Border)];
             Row8 ar, ag, ab, aw;
             load_row<N>(sum, ar, ag, ab, aw);
