@@ -1,5 +1,6 @@
 #include "wavefront.h"
 
+#include <cstddef>
 #include <cstdlib>
 #include <cstring>
 #include <memory>
@@ -1441,23 +1442,35 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
     const int *flags = ws.triangle_flags.data();
     const uint32_t n_triangles = uint32_t(g.triangles.size());
     using F = WavefrontScene::ShapeFlag;
+    // A vertex's Vec3 (positions, normals) read as floats at a signed 32-bit index, 3 v + axis:
+    // indexed as Vec3s, the offsets were 64-bit and GCC loaded them lane by lane.
+    static_assert(sizeof(Vec3) == 3 * sizeof(float), "Vec3 is three floats");
+    auto vertex = [](const Vec3 *array, int v) __attribute__((always_inline)) {
+        const float *f = &array->x;
+        const int i = 3 * v;
+        return Vec3{f[i], f[i + 1], f[i + 2]};
+    };
+    // The triangles' words so too (a Triangle is 7: v, shape, n).
+    static_assert(sizeof(Triangle) == 7 * 4 && offsetof(Triangle, n) == 4 * 4, "a Triangle is 7 words");
+    const uint32_t *triangle_words = &triangles->v[0];
+    const float *triangle_floats = &triangles->n.x - 4;
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         // (Signed 32-bit indices: GCC gathers with unsigned ones only through 64-bit indices,
         // two instructions per vector, and for some gathers not at all.)
         const int t = int(std::min(b.prim[k], n_triangles - 1));  // (a select would select addresses)
-        const Triangle &tri = triangles[t];
         const int flag = flags[t];
-        const int v0 = int(tri.v[0]), v1 = int(tri.v[1]), v2 = int(tri.v[2]);
+        const int w = 7 * t;
+        const int v0 = int(triangle_words[w]), v1 = int(triangle_words[w + 1]), v2 = int(triangle_words[w + 2]);
         float b1 = b.hu[k], b2 = b.hv[k], b0 = 1.f - b1 - b2;
-        const Vec3 &p0 = positions[v0], &p1 = positions[v1], &p2 = positions[v2];
+        const Vec3 p0 = vertex(positions, v0), p1 = vertex(positions, v1), p2 = vertex(positions, v2);
         Vec3 p = p0 * b0 + p1 * b1 + p2 * b2;
         Vec3 p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
         // The shading normal: the vertex normals interpolated, or the face's; both flipped
         // with flip_normals (as a product with -1: exact).
-        Vec3 face_n{tri.n.x, tri.n.y, tri.n.z}, ns = face_n;
+        Vec3 face_n{triangle_floats[w + 4], triangle_floats[w + 5], triangle_floats[w + 6]}, ns = face_n;
         if constexpr (Normals) {
-            Vec3 vn = normalize(normals[v0] * b0 + normals[v1] * b1 + normals[v2] * b2);
+            Vec3 vn = normalize(vertex(normals, v0) * b0 + vertex(normals, v1) * b1 + vertex(normals, v2) * b2);
             ns = select((flag & F::HasNormals) != 0, vn, face_n);
         }
         float sign = (flag & F::FlipNormals) != 0 ? -1.f : 1.f;
