@@ -1615,6 +1615,11 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, Wavef
 void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecord *record) {
     const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
     const WavefrontScene::Material *mats = ws.materials.data();
+    // (A material's float fields read at a signed 32-bit word index, which GCC gathers in
+    // hardware: indexed as Materials the offsets were 64-bit and it loaded them lane by
+    // lane. Cornell-box, the cbox and textured 1-1.5% faster.)
+    static_assert(sizeof(WavefrontScene::Material) % 4 == 0, "a Material is whole words");
+    const float *mat_floats = reinterpret_cast<const float *>(mats);
     const uint32_t n_prims = uint32_t(ws.prim_material.size());
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -1626,9 +1631,11 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
         b.mat[k] = m;
         b.shade[k] = b.prim[k] < n_prims && b.done[k] != 0 ? q : 0;
         b.record_rough[k] = b.record_reflect[k] = b.record_refract[k] = -1;
-        const WavefrontScene::Material &mat = mats[m];
-        b.ar[k] = mat.ar, b.ag[k] = mat.ag, b.ab[k] = mat.ab;
-        b.tr[k] = mat.tr, b.tg[k] = mat.tg, b.tb[k] = mat.tb;
+        using M = WavefrontScene::Material;
+        const int w = int(sizeof(M) / 4) * m;
+        b.ar[k] = mat_floats[w + int(offsetof(M, ar) / 4)], b.ag[k] = mat_floats[w + int(offsetof(M, ag) / 4)];
+        b.ab[k] = mat_floats[w + int(offsetof(M, ab) / 4)], b.tr[k] = mat_floats[w + int(offsetof(M, tr) / 4)];
+        b.tg[k] = mat_floats[w + int(offsetof(M, tg) / 4)], b.tb[k] = mat_floats[w + int(offsetof(M, tb) / 4)];
     }
     for (const WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
         with_flags([&](auto recorded) {
