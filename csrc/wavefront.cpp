@@ -1428,6 +1428,15 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
     }
 }
 
+/// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
+/// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
+/// offsets are 64-bit and GCC loads them lane by lane.
+template <typename Word, typename T>
+RBPT_INLINE Word word_of(const T *array, int i, int word) {
+    static_assert(sizeof(T) % 4 == 0 && sizeof(Word) == 4, "structs of whole words");
+    return reinterpret_cast<const Word *>(array)[int(sizeof(T) / 4) * i + word];
+}
+
 /// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
 /// triangle or a sphere; `done` marks them. The triangles in SIMD lanes over all lanes (the
 /// others compute numbers nothing reads: spheres' are overwritten, and the shade stage
@@ -1442,33 +1451,26 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
     const int *flags = ws.triangle_flags.data();
     const uint32_t n_triangles = uint32_t(g.triangles.size());
     using F = WavefrontScene::ShapeFlag;
-    // A vertex's Vec3 (positions, normals) read as floats at a signed 32-bit index, 3 v + axis:
-    // indexed as Vec3s, the offsets were 64-bit and GCC loaded them lane by lane.
-    static_assert(sizeof(Vec3) == 3 * sizeof(float), "Vec3 is three floats");
+    // (Vertices and triangles read at 32-bit word indices: word_of().)
     auto vertex = [](const Vec3 *array, int v) __attribute__((always_inline)) {
-        const float *f = &array->x;
-        const int i = 3 * v;
-        return Vec3{f[i], f[i + 1], f[i + 2]};
+        return Vec3{word_of<float>(array, v, 0), word_of<float>(array, v, 1), word_of<float>(array, v, 2)};
     };
-    // The triangles' words so too (a Triangle is 7: v, shape, n).
-    static_assert(sizeof(Triangle) == 7 * 4 && offsetof(Triangle, n) == 4 * 4, "a Triangle is 7 words");
-    const uint32_t *triangle_words = &triangles->v[0];
-    const float *triangle_floats = &triangles->n.x - 4;
+    constexpr int N = int(offsetof(Triangle, n) / 4);  // (the face normal's first word)
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         // (Signed 32-bit indices: GCC gathers with unsigned ones only through 64-bit indices,
         // two instructions per vector, and for some gathers not at all.)
         const int t = int(std::min(b.prim[k], n_triangles - 1));  // (a select would select addresses)
         const int flag = flags[t];
-        const int w = 7 * t;
-        const int v0 = int(triangle_words[w]), v1 = int(triangle_words[w + 1]), v2 = int(triangle_words[w + 2]);
+        const int v0 = int(word_of<uint32_t>(triangles, t, 0)), v1 = int(word_of<uint32_t>(triangles, t, 1));
+        const int v2 = int(word_of<uint32_t>(triangles, t, 2));
         float b1 = b.hu[k], b2 = b.hv[k], b0 = 1.f - b1 - b2;
         const Vec3 p0 = vertex(positions, v0), p1 = vertex(positions, v1), p2 = vertex(positions, v2);
         Vec3 p = p0 * b0 + p1 * b1 + p2 * b2;
         Vec3 p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
         // The shading normal: the vertex normals interpolated, or the face's; both flipped
         // with flip_normals (as a product with -1: exact).
-        Vec3 face_n{triangle_floats[w + 4], triangle_floats[w + 5], triangle_floats[w + 6]}, ns = face_n;
+        Vec3 face_n{word_of<float>(triangles, t, N), word_of<float>(triangles, t, N + 1), word_of<float>(triangles, t, N + 2)}, ns = face_n;
         if constexpr (Normals) {
             Vec3 vn = normalize(vertex(normals, v0) * b0 + vertex(normals, v1) * b1 + vertex(normals, v2) * b2);
             ns = select((flag & F::HasNormals) != 0, vn, face_n);
@@ -1615,11 +1617,13 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, Wavef
 void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecord *record) {
     const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
     const WavefrontScene::Material *mats = ws.materials.data();
-    // (A material's float fields read at a signed 32-bit word index, which GCC gathers in
-    // hardware: indexed as Materials the offsets were 64-bit and it loaded them lane by
-    // lane. Cornell-box, the cbox and textured 1-1.5% faster.)
-    static_assert(sizeof(WavefrontScene::Material) % 4 == 0, "a Material is whole words");
-    const float *mat_floats = reinterpret_cast<const float *>(mats);
+    // (A material's constant inputs read at 32-bit word indices, word_of(): cornell-box, the
+    // cbox and textured 1-1.5% faster than indexed as Materials.)
+    using M = WavefrontScene::Material;
+    constexpr int A = int(offsetof(M, ar) / 4), T = int(offsetof(M, tr) / 4);
+    static_assert(offsetof(M, ag) == offsetof(M, ar) + 4 && offsetof(M, ab) == offsetof(M, ar) + 8 &&
+                  offsetof(M, tg) == offsetof(M, tr) + 4 && offsetof(M, tb) == offsetof(M, tr) + 8,
+                  "a material's channels are consecutive words");
     const uint32_t n_prims = uint32_t(ws.prim_material.size());
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -1631,11 +1635,8 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
         b.mat[k] = m;
         b.shade[k] = b.prim[k] < n_prims && b.done[k] != 0 ? q : 0;
         b.record_rough[k] = b.record_reflect[k] = b.record_refract[k] = -1;
-        using M = WavefrontScene::Material;
-        const int w = int(sizeof(M) / 4) * m;
-        b.ar[k] = mat_floats[w + int(offsetof(M, ar) / 4)], b.ag[k] = mat_floats[w + int(offsetof(M, ag) / 4)];
-        b.ab[k] = mat_floats[w + int(offsetof(M, ab) / 4)], b.tr[k] = mat_floats[w + int(offsetof(M, tr) / 4)];
-        b.tg[k] = mat_floats[w + int(offsetof(M, tg) / 4)], b.tb[k] = mat_floats[w + int(offsetof(M, tb) / 4)];
+        b.ar[k] = word_of<float>(mats, m, A), b.ag[k] = word_of<float>(mats, m, A + 1), b.ab[k] = word_of<float>(mats, m, A + 2);
+        b.tr[k] = word_of<float>(mats, m, T), b.tg[k] = word_of<float>(mats, m, T + 1), b.tb[k] = word_of<float>(mats, m, T + 2);
     }
     for (const WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
         with_flags([&](auto recorded) {
