@@ -915,6 +915,89 @@ RBPT_INLINE float t_error_bound(const float x[3], const float y[3], const float 
 
 }  // namespace
 
+#if defined(__AVX2__)
+/// A register of the flat pass's rays (flat_triangles()' chunk tests in intrinsics): with
+/// AVX-512, sixteen lanes and comparisons as bit masks; with AVX2, eight lanes and
+/// comparisons as lanes of all ones. Each operation is the scalar one, lane by lane (min(a,
+/// b) is x86's: a < b ? a : b, the second operand when either is NaN).
+struct FlatLanes {
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+    static constexpr int Width = 16;
+    using F = __m512;
+    using I = __m512i;
+    using M = __mmask16;
+    static F load(const float *p) { return _mm512_loadu_ps(p); }
+    static I load(const int *p) { return _mm512_loadu_si512(p); }
+    static I load(const uint32_t *p) { return _mm512_loadu_si512(p); }
+    static void store(float *p, F a) { _mm512_storeu_ps(p, a); }
+    static void store(uint32_t *p, I a) { _mm512_storeu_si512(p, a); }
+    static F set1(float x) { return _mm512_set1_ps(x); }
+    static I set1(uint32_t x) { return _mm512_set1_epi32(int(x)); }
+    static F add(F a, F b) { return _mm512_add_ps(a, b); }
+    static F sub(F a, F b) { return _mm512_sub_ps(a, b); }
+    static F mul(F a, F b) { return _mm512_mul_ps(a, b); }
+    static F div(F a, F b) { return _mm512_div_ps(a, b); }
+    static F min(F a, F b) { return _mm512_min_ps(a, b); }
+    static F max(F a, F b) { return _mm512_max_ps(a, b); }
+    static F abs(F a) { return _mm512_abs_ps(a); }
+    /// Lane k: table's lane index[k] (index < 3: a vertex's coordinate along the ray's axis).
+    static F pick(I index, F table) { return _mm512_permutexvar_ps(index, table); }
+    /// A vertex's three coordinates in lanes 0 to 2.
+    static F vertex(const float v[3]) { return _mm512_maskz_loadu_ps(__mmask16(0x7), v); }
+    static M eq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_EQ_OQ); }
+    static M neq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_NEQ_UQ); }
+    static M lt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
+    static M le(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ); }
+    static M gt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GT_OQ); }
+    static M ge(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GE_OQ); }
+    static M either(M a, M b) { return a | b; }
+    static M both(M a, M b) { return a & b; }
+    static bool any(M m) { return m != 0; }
+    /// m ? b : a, lane by lane.
+    static F select(M m, F a, F b) { return _mm512_mask_mov_ps(a, m, b); }
+    static I select(M m, I a, I b) { return _mm512_mask_mov_epi32(a, m, b); }
+    /// (sign bit of s set) ? b : a, lane by lane.
+    static F select_by_sign(F s, F a, F b) { return _mm512_mask_blend_ps(_mm512_movepi32_mask(_mm512_castps_si512(s)), a, b); }
+#else
+    static constexpr int Width = 8;
+    using F = __m256;
+    using I = __m256i;
+    using M = __m256;
+    static F load(const float *p) { return _mm256_loadu_ps(p); }
+    static I load(const int *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
+    static I load(const uint32_t *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
+    static void store(float *p, F a) { _mm256_storeu_ps(p, a); }
+    static void store(uint32_t *p, I a) { _mm256_storeu_si256(reinterpret_cast<__m256i *>(p), a); }
+    static F set1(float x) { return _mm256_set1_ps(x); }
+    static I set1(uint32_t x) { return _mm256_set1_epi32(int(x)); }
+    static F add(F a, F b) { return _mm256_add_ps(a, b); }
+    static F sub(F a, F b) { return _mm256_sub_ps(a, b); }
+    static F mul(F a, F b) { return _mm256_mul_ps(a, b); }
+    static F div(F a, F b) { return _mm256_div_ps(a, b); }
+    static F min(F a, F b) { return _mm256_min_ps(a, b); }
+    static F max(F a, F b) { return _mm256_max_ps(a, b); }
+    static F abs(F a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.f), a); }
+    static F pick(I index, F table) { return _mm256_permutevar8x32_ps(table, index); }
+    static F vertex(const float v[3]) { return _mm256_setr_ps(v[0], v[1], v[2], 0.f, 0.f, 0.f, 0.f, 0.f); }
+    static M eq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_EQ_OQ); }
+    static M neq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_NEQ_UQ); }
+    static M lt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+    static M le(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+    static M gt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
+    static M ge(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
+    static M either(M a, M b) { return _mm256_or_ps(a, b); }
+    static M both(M a, M b) { return _mm256_and_ps(a, b); }
+    static bool any(M m) { return _mm256_movemask_ps(m) != 0; }
+    static F select(M m, F a, F b) { return _mm256_blendv_ps(a, b, m); }
+    static I select(M m, I a, I b) {
+        return _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(a), _mm256_castsi256_ps(b), m));
+    }
+    static F select_by_sign(F s, F a, F b) { return _mm256_blendv_ps(a, b, s); }
+#endif
+};
+static_assert(BVH::FlatChunk % FlatLanes::Width == 0, "a chunk is whole registers of rays");
+#endif
+
 /// intersect_columns()'s rays: their intervals, the watertight test's constants (kx, ky, kz
 /// and the permuted origin and shear), and their nearest hits so far.
 struct BVH::FlatRays {
@@ -1034,24 +1117,26 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
     const int chunks = chunked ? n / FlatChunk * FlatChunk : 0;
     // Whether one of the chunk's rays enters half h's box before its nearest hit so far
     // (NodeTest's operations, enters_box()) in lanes, whose OR the vectoriser takes across
-    // them in a dozen shuffles; with AVX-512 the chunk is one register and that OR a test of
-    // the compare's mask (cornell-box 2% faster).
+    // them in a dozen shuffles; with AVX2 and AVX-512 the chunk is whole registers (FlatLanes)
+    // and that OR a test of the compares' masks (with AVX-512, cornell-box 2% faster).
     auto chunk_enters = [&](int h, int k0) __attribute__((always_inline)) {
-#if defined(__AVX512F__) && defined(__AVX512DQ__)
-        static_assert(FlatChunk == 16, "a chunk is one AVX-512 register of rays");
-        __m512 t0 = _mm512_loadu_ps(q_tmin + k0);
-        __m512 t1 = _mm512_min_ps(_mm512_loadu_ps(q_best_t + k0), _mm512_loadu_ps(q_tmax + k0));
-        const float *o[3] = {q_rox, q_roy, q_roz}, *inv[3] = {q_ix, q_iy, q_iz};
-        for (int axis = 0; axis < 3; ++axis) {
-            const __m512 inv_d = _mm512_loadu_ps(inv[axis] + k0), origin = _mm512_loadu_ps(o[axis] + k0);
-            const __mmask16 neg = _mm512_movepi32_mask(_mm512_castps_si512(inv_d));
-            const __m512 lo = _mm512_set1_ps(box_lo[h][axis]), hi = _mm512_set1_ps(box_hi[h][axis]);
-            const __m512 t_near = _mm512_mul_ps(_mm512_sub_ps(_mm512_mask_blend_ps(neg, lo, hi), origin), inv_d);
-            const __m512 t_far = _mm512_mul_ps(_mm512_sub_ps(_mm512_mask_blend_ps(neg, hi, lo), origin), inv_d);
-            t0 = _mm512_max_ps(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
-            t1 = _mm512_min_ps(t_far, t1);
+#if defined(__AVX2__)
+        using L = FlatLanes;
+        bool any = false;
+        for (int k = k0; k < k0 + FlatChunk; k += L::Width) {
+            typename L::F t0 = L::load(q_tmin + k), t1 = L::min(L::load(q_best_t + k), L::load(q_tmax + k));
+            const float *o[3] = {q_rox, q_roy, q_roz}, *inv[3] = {q_ix, q_iy, q_iz};
+            for (int axis = 0; axis < 3; ++axis) {
+                const typename L::F inv_d = L::load(inv[axis] + k), origin = L::load(o[axis] + k);
+                const typename L::F lo = L::set1(box_lo[h][axis]), hi = L::set1(box_hi[h][axis]);
+                const typename L::F t_near = L::mul(L::sub(L::select_by_sign(inv_d, lo, hi), origin), inv_d);
+                const typename L::F t_far = L::mul(L::sub(L::select_by_sign(inv_d, hi, lo), origin), inv_d);
+                t0 = L::max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
+                t1 = L::min(t_far, t1);
+            }
+            any = any || L::any(L::le(t0, L::mul(t1, L::set1(1.0001f))));
         }
-        return _mm512_cmp_ps_mask(t0, _mm512_mul_ps(t1, _mm512_set1_ps(1.0001f)), _CMP_LE_OQ) != 0 ? 1 : 0;
+        return any ? 1 : 0;
 #else
         // Whether ray k enters half h's box before its nearest hit so far (NodeTest's operations).
         auto enters = [&](int k) __attribute__((always_inline)) {
@@ -1059,94 +1144,92 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
             return enters_box(box_lo[h], box_hi[h], o, inv_d, q_tmin[k], q_best_t[k] < q_tmax[k] ? q_best_t[k] : q_tmax[k], 1.0001f);
         };
         int any = 0;
-#pragma GCC ivdep  // without AVX-512
+#pragma GCC ivdep  // without AVX2
         for (int l = 0; l < FlatChunk; ++l) any |= enters(k0 + l);
         return any;
 #endif
     };
-#if defined(__AVX512F__) && defined(__AVX512DQ__)
-    // With AVX-512, a chunk's test_range() written out in one register of rays: the same
+#if defined(__AVX2__)
+    // With AVX2 and AVX-512, a chunk's test_range() written out in registers of rays: the same
     // operations in the same order (so the same results), but each vertex coordinate picked
-    // by the ray's axis permutation with one permute from the triangle's nine coordinates,
-    // where the vectoriser's picks take three or four instructions. (With the chunks' box
-    // tests above, one thread, 256 px, 16 spp, Intel Xeon: cornell-box 0.366 -> 0.348 s, the
-    // cbox 0.298 -> 0.288, textured 0.291 -> 0.284, glossy 0.357 -> 0.350; images bitwise.)
-    __m512 tri[G];
-    for (int i = 0; i < G; ++i) tri[i] = _mm512_maskz_loadu_ps(__mmask16(0x1ff), &vert[i][0][0]);
-    auto test_chunk = [&](int k0, auto from, auto to) __attribute__((always_inline)) {
+    // by the ray's axis permutation with one permute from the vertex's three coordinates,
+    // where the vectoriser's picks take three or four instructions. (One thread, 256 px,
+    // 16 spp, Intel Xeon, images bitwise. AVX-512, with the chunks' box tests above:
+    // cornell-box 0.366 -> 0.348 s, the cbox 0.298 -> 0.288, textured 0.291 -> 0.284, glossy
+    // 0.357 -> 0.350. AVX2, against the vectoriser's loops: cornell-box 0.61 -> 0.54 s, the
+    // cbox 0.49 -> 0.46, glossy 0.56 -> 0.53, textured 0.47 -> 0.44, veach-mis 0.177 -> 0.171.)
+    using L = FlatLanes;
+    using F = typename L::F;
+    using M = typename L::M;
+    F tri[G][3];
+    for (int i = 0; i < G; ++i)
+        for (int j = 0; j < 3; ++j) tri[i][j] = L::vertex(vert[i][j]);
+    auto test_lanes = [&](int k0, auto from, auto to) __attribute__((always_inline)) {
         constexpr int I0 = decltype(from)::value, I1 = decltype(to)::value;
-        const __m512i kx = _mm512_loadu_si512(q_kx + k0), ky = _mm512_loadu_si512(q_ky + k0);
-        const __m512i kz = _mm512_loadu_si512(q_kz + k0);
-        __m512i ix[3], iy[3], iz[3];  // vertex j's coordinate along the ray's x, y and z
-        for (int j = 0; j < 3; ++j) {
-            const __m512i base = _mm512_set1_epi32(3 * j);
-            ix[j] = _mm512_add_epi32(kx, base), iy[j] = _mm512_add_epi32(ky, base), iz[j] = _mm512_add_epi32(kz, base);
-        }
-        const __m512 ox = _mm512_loadu_ps(q_ox + k0), oy = _mm512_loadu_ps(q_oy + k0), oz = _mm512_loadu_ps(q_oz + k0);
-        const __m512 sx = _mm512_loadu_ps(q_sx + k0), sy = _mm512_loadu_ps(q_sy + k0), sz = _mm512_loadu_ps(q_sz + k0);
-        const __m512 tmin = _mm512_loadu_ps(q_tmin + k0), tmax = _mm512_loadu_ps(q_tmax + k0);
-        const __m512 zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
-        __m512 retrace = _mm512_loadu_ps(q_retrace + k0), best_t = _mm512_loadu_ps(q_best_t + k0);
-        __m512 best_u = _mm512_loadu_ps(q_best_u + k0), best_v = _mm512_loadu_ps(q_best_v + k0);
-        __m512 best_inv_det = Deferred ? _mm512_loadu_ps(q_best_inv_det + k0) : zero;
-        __m512i best = _mm512_loadu_si512(q_best + k0);
+        const typename L::I kx = L::load(q_kx + k0), ky = L::load(q_ky + k0), kz = L::load(q_kz + k0);
+        const F ox = L::load(q_ox + k0), oy = L::load(q_oy + k0), oz = L::load(q_oz + k0);
+        const F sx = L::load(q_sx + k0), sy = L::load(q_sy + k0), sz = L::load(q_sz + k0);
+        const F tmin = L::load(q_tmin + k0), tmax = L::load(q_tmax + k0);
+        const F zero = L::set1(0.f), one = L::set1(1.f);
+        F retrace = L::load(q_retrace + k0), best_t = L::load(q_best_t + k0);
+        F best_u = L::load(q_best_u + k0), best_v = L::load(q_best_v + k0);
+        F best_inv_det = Deferred ? L::load(q_best_inv_det + k0) : zero;
+        typename L::I best = L::load(q_best + k0);
         for (int i = I0; i < I1; ++i) {
-            __m512 x[3], y[3], z[3];
+            F x[3], y[3], z[3];
             for (int j = 0; j < 3; ++j) {
-                z[j] = _mm512_sub_ps(_mm512_permutexvar_ps(iz[j], tri[i]), oz);
-                x[j] = _mm512_sub_ps(_mm512_sub_ps(_mm512_permutexvar_ps(ix[j], tri[i]), ox), _mm512_mul_ps(sx, z[j]));
-                y[j] = _mm512_sub_ps(_mm512_sub_ps(_mm512_permutexvar_ps(iy[j], tri[i]), oy), _mm512_mul_ps(sy, z[j]));
+                z[j] = L::sub(L::pick(kz, tri[i][j]), oz);
+                x[j] = L::sub(L::sub(L::pick(kx, tri[i][j]), ox), L::mul(sx, z[j]));
+                y[j] = L::sub(L::sub(L::pick(ky, tri[i][j]), oy), L::mul(sy, z[j]));
             }
-            const __m512 U = _mm512_sub_ps(_mm512_mul_ps(x[2], y[1]), _mm512_mul_ps(y[2], x[1]));
-            const __m512 Ve = _mm512_sub_ps(_mm512_mul_ps(x[0], y[2]), _mm512_mul_ps(y[0], x[2]));
-            const __m512 We = _mm512_sub_ps(_mm512_mul_ps(x[1], y[0]), _mm512_mul_ps(y[1], x[0]));
-            const __mmask16 edge = _mm512_cmp_ps_mask(U, zero, _CMP_EQ_OQ) | _mm512_cmp_ps_mask(Ve, zero, _CMP_EQ_OQ) |
-                                   _mm512_cmp_ps_mask(We, zero, _CMP_EQ_OQ);
-            // (std::min(a, b) is b < a ? b : a, _mm512_min_ps(b, a); std::max likewise.)
-            const __m512 lo = _mm512_min_ps(We, _mm512_min_ps(Ve, U)), hi = _mm512_max_ps(We, _mm512_max_ps(Ve, U));
-            const __m512 det = _mm512_add_ps(_mm512_add_ps(U, Ve), We);
-            __mmask16 hit = (_mm512_cmp_ps_mask(lo, zero, _CMP_GE_OQ) | _mm512_cmp_ps_mask(hi, zero, _CMP_LE_OQ)) &
-                            _mm512_cmp_ps_mask(det, zero, _CMP_NEQ_UQ);
-            const __m512 T = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(U, _mm512_mul_ps(sz, z[0])), _mm512_mul_ps(Ve, _mm512_mul_ps(sz, z[1]))),
-                                           _mm512_mul_ps(We, _mm512_mul_ps(sz, z[2])));
-            const __m512 inv_det = _mm512_div_ps(one, det);
-            const __m512 t = _mm512_mul_ps(T, inv_det);
-            hit &= _mm512_cmp_ps_mask(t, tmin, _CMP_GT_OQ) & _mm512_cmp_ps_mask(t, tmax, _CMP_LT_OQ);
+            const F U = L::sub(L::mul(x[2], y[1]), L::mul(y[2], x[1]));
+            const F Ve = L::sub(L::mul(x[0], y[2]), L::mul(y[0], x[2]));
+            const F We = L::sub(L::mul(x[1], y[0]), L::mul(y[1], x[0]));
+            const M edge = L::either(L::either(L::eq(U, zero), L::eq(Ve, zero)), L::eq(We, zero));
+            // (std::min(a, b) is b < a ? b : a, L::min(b, a); std::max likewise.)
+            const F lo = L::min(We, L::min(Ve, U)), hi = L::max(We, L::max(Ve, U));
+            const F det = L::add(L::add(U, Ve), We);
+            M hit = L::both(L::either(L::ge(lo, zero), L::le(hi, zero)), L::neq(det, zero));
+            const F T = L::add(L::add(L::mul(U, L::mul(sz, z[0])), L::mul(Ve, L::mul(sz, z[1]))), L::mul(We, L::mul(sz, z[2])));
+            const F inv_det = L::div(one, det);
+            const F t = L::mul(T, inv_det);
+            hit = L::both(hit, L::both(L::gt(t, tmin), L::lt(t, tmax)));
             if constexpr (!Deferred) {
-                // t_error_bound()'s operations (its max_ps is _mm512_max_ps).
-                auto abs_max = [](const __m512 a[3]) {
-                    return _mm512_max_ps(_mm512_abs_ps(a[0]), _mm512_max_ps(_mm512_abs_ps(a[1]), _mm512_abs_ps(a[2])));
-                };
-                const __m512 g2 = _mm512_set1_ps(gamma(2)), g3 = _mm512_set1_ps(gamma(3)), g5 = _mm512_set1_ps(gamma(5));
-                const __m512 max_zt = _mm512_mul_ps(_mm512_abs_ps(sz), abs_max(z));
-                const __m512 max_xt = abs_max(x), max_yt = abs_max(y);
-                const __m512 delta_z = _mm512_mul_ps(g3, max_zt);
-                const __m512 delta_x = _mm512_mul_ps(g5, _mm512_add_ps(max_xt, max_zt));
-                const __m512 delta_y = _mm512_mul_ps(g5, _mm512_add_ps(max_yt, max_zt));
-                const __m512 delta_e = _mm512_mul_ps(_mm512_set1_ps(2.f), _mm512_add_ps(_mm512_mul_ps(g2, _mm512_mul_ps(max_xt, max_yt)),
-                                                                                      _mm512_add_ps(_mm512_mul_ps(delta_y, max_xt), _mm512_mul_ps(delta_x, max_yt))));
-                const __m512 e[3] = {U, Ve, We};
-                const __m512 max_e = abs_max(e);
-                const __m512 bound = _mm512_mul_ps(
-                    _mm512_mul_ps(_mm512_set1_ps(3.f), _mm512_add_ps(_mm512_mul_ps(g3, _mm512_mul_ps(max_e, max_zt)),
-                                                                    _mm512_add_ps(_mm512_mul_ps(delta_e, max_zt), _mm512_mul_ps(delta_z, max_e)))),
-                    _mm512_abs_ps(inv_det));
-                hit &= _mm512_cmp_ps_mask(t, bound, _CMP_GT_OQ);
+                // t_error_bound()'s operations (its max_ps is L::max).
+                auto abs_max = [](const F a[3]) { return L::max(L::abs(a[0]), L::max(L::abs(a[1]), L::abs(a[2]))); };
+                const F g2 = L::set1(gamma(2)), g3 = L::set1(gamma(3)), g5 = L::set1(gamma(5));
+                const F max_zt = L::mul(L::abs(sz), abs_max(z));
+                const F max_xt = abs_max(x), max_yt = abs_max(y);
+                const F delta_z = L::mul(g3, max_zt);
+                const F delta_x = L::mul(g5, L::add(max_xt, max_zt));
+                const F delta_y = L::mul(g5, L::add(max_yt, max_zt));
+                const F delta_e = L::mul(L::set1(2.f), L::add(L::mul(g2, L::mul(max_xt, max_yt)),
+                                                              L::add(L::mul(delta_y, max_xt), L::mul(delta_x, max_yt))));
+                const F e[3] = {U, Ve, We};
+                const F max_e = abs_max(e);
+                const F bound = L::mul(L::mul(L::set1(3.f), L::add(L::mul(g3, L::mul(max_e, max_zt)),
+                                                                   L::add(L::mul(delta_e, max_zt), L::mul(delta_z, max_e)))),
+                                       L::abs(inv_det));
+                hit = L::both(hit, L::gt(t, bound));
             }
-            retrace = _mm512_mask_mov_ps(retrace, edge, one);
+            retrace = L::select(edge, retrace, one);
             // The nearest; a tie leaves the order to intersect()'s traversal.
-            retrace = _mm512_mask_mov_ps(retrace, hit & _mm512_cmp_ps_mask(t, best_t, _CMP_EQ_OQ), one);
-            const __mmask16 better = hit & _mm512_cmp_ps_mask(t, best_t, _CMP_LT_OQ);
-            best_t = _mm512_mask_mov_ps(best_t, better, t);
-            best_u = _mm512_mask_mov_ps(best_u, better, _mm512_mul_ps(Ve, inv_det));
-            best_v = _mm512_mask_mov_ps(best_v, better, _mm512_mul_ps(We, inv_det));
-            best = _mm512_mask_mov_epi32(best, better, _mm512_set1_epi32(int(ids[i])));
-            if constexpr (Deferred) best_inv_det = _mm512_mask_mov_ps(best_inv_det, better, inv_det);
+            retrace = L::select(L::both(hit, L::eq(t, best_t)), retrace, one);
+            const M better = L::both(hit, L::lt(t, best_t));
+            best_t = L::select(better, best_t, t);
+            best_u = L::select(better, best_u, L::mul(Ve, inv_det));
+            best_v = L::select(better, best_v, L::mul(We, inv_det));
+            best = L::select(better, best, L::set1(ids[i]));
+            if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, inv_det);
         }
-        _mm512_storeu_ps(q_retrace + k0, retrace), _mm512_storeu_ps(q_best_t + k0, best_t);
-        _mm512_storeu_ps(q_best_u + k0, best_u), _mm512_storeu_ps(q_best_v + k0, best_v);
-        _mm512_storeu_si512(q_best + k0, best);
-        if constexpr (Deferred) _mm512_storeu_ps(q_best_inv_det + k0, best_inv_det);
+        L::store(q_retrace + k0, retrace), L::store(q_best_t + k0, best_t);
+        L::store(q_best_u + k0, best_u), L::store(q_best_v + k0, best_v);
+        L::store(q_best + k0, best);
+        if constexpr (Deferred) L::store(q_best_inv_det + k0, best_inv_det);
+    };
+    // A chunk's registers, triangles [from, to) of the pass.
+    auto test_chunk = [&](int k0, auto from, auto to) __attribute__((always_inline)) {
+        for (int k = k0; k < k0 + FlatChunk; k += L::Width) test_lanes(k, from, to);
     };
     auto test_all = [&](int k0) __attribute__((always_inline)) { test_chunk(k0, First{}, End{}); };
     auto test_first = [&](int k0) __attribute__((always_inline)) { test_chunk(k0, First{}, Half{}); };
@@ -1154,15 +1237,15 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
     const int full = n / FlatChunk * FlatChunk;  // (every full chunk, culled or not)
 #else
     auto test_all = [&](int k0) __attribute__((always_inline)) {
-#pragma GCC ivdep  // without AVX-512
+#pragma GCC ivdep  // without AVX2
         for (int l = 0; l < FlatChunk; ++l) test(k0 + l);
     };
     auto test_first = [&](int k0) __attribute__((always_inline)) {
-#pragma GCC ivdep  // without AVX-512
+#pragma GCC ivdep  // without AVX2
         for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, First{}, Half{});
     };
     auto test_second = [&](int k0) __attribute__((always_inline)) {
-#pragma GCC ivdep  // without AVX-512
+#pragma GCC ivdep  // without AVX2
         for (int l = 0; l < FlatChunk; ++l) test_range(k0 + l, Half{}, End{});
     };
     const int full = chunks;
