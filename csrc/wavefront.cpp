@@ -1244,11 +1244,9 @@ RBPT_INLINE void move_lane(const Batch &a, int from, Batch &b, int to) {
 }
 
 /// Move the lanes of [0, n) whose path goes on (`alive`) to the front, in order: what the
-/// next bounce reads, as move_lane() copies it. Returns their number. With AVX-512, sixteen
-/// lanes of a column at a time, compressed in a register (in place: the lanes stored go no
-/// further than the sixteen just loaded); else one lane at a time.
+/// next bounce reads, as move_lane() copies it. Returns their number. (simd::compact_columns:
+/// with AVX-512 and AVX2 a vector of lanes of a column at a time.)
 int compact_lanes(Batch &b, int n) {
-#if defined(__AVX512F__)
     uint32_t *const words[] = {
         reinterpret_cast<uint32_t *>(b.ox), reinterpret_cast<uint32_t *>(b.oy), reinterpret_cast<uint32_t *>(b.oz),
         reinterpret_cast<uint32_t *>(b.dx), reinterpret_cast<uint32_t *>(b.dy), reinterpret_cast<uint32_t *>(b.dz),
@@ -1260,40 +1258,7 @@ int compact_lanes(Batch &b, int n) {
         reinterpret_cast<uint32_t *>(b.prev_px), reinterpret_cast<uint32_t *>(b.prev_py), reinterpret_cast<uint32_t *>(b.prev_pz),
         reinterpret_cast<uint32_t *>(b.prev_delta), reinterpret_cast<uint32_t *>(b.seq), reinterpret_cast<uint32_t *>(b.depth)};
     uint64_t *const doubles[] = {b.state, b.inc};
-    int live = 0;
-    for (int k = 0; k < n; k += 16) {
-        const __mmask16 in = __mmask16(n - k >= 16 ? 0xffffu : (1u << (n - k)) - 1u);
-        const __mmask16 alive = _mm512_mask_cmpneq_epi32_mask(in, _mm512_load_si512(b.alive + k), _mm512_setzero_si512());
-        if (alive == 0xffffu && live == k) {
-            live += 16;  // (a full run in place)
-            continue;
-        }
-        const int count = __builtin_popcount(alive);
-        const __mmask16 out = __mmask16((1u << count) - 1u);
-        for (uint32_t *w : words) {
-            _mm512_mask_storeu_epi32(w + live, out, _mm512_maskz_compress_epi32(alive, _mm512_load_si512(w + k)));
-        }
-        const __mmask8 lo = __mmask8(alive & 0xffu), hi = __mmask8(alive >> 8);
-        const int count_lo = __builtin_popcount(lo);
-        for (uint64_t *d : doubles) {
-            // (Both halves loaded before either is stored: the first's store may reach the second.)
-            const __m512i a = _mm512_maskz_compress_epi64(lo, _mm512_load_si512(d + k));
-            const __m512i c = _mm512_maskz_compress_epi64(hi, _mm512_load_si512(d + k + 8));
-            _mm512_mask_storeu_epi64(d + live, __mmask8((1u << count_lo) - 1u), a);
-            _mm512_mask_storeu_epi64(d + live + count_lo, __mmask8((1u << (count - count_lo)) - 1u), c);
-        }
-        live += count;
-    }
-    return live;
-#else
-    int live = 0;
-    for (int k = 0; k < n; ++k) {
-        if (!b.alive[k]) continue;
-        if (live != k) move_lane(b, k, b, live);
-        ++live;
-    }
-    return live;
-#endif
+    return simd::compact_columns(words, doubles, b.alive, n);
 }
 
 /// Lane k's path state, as path_li holds it.
