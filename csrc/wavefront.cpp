@@ -508,31 +508,6 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const Microf
     return e;
 }
 
-/// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
-/// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
-/// offsets are 64-bit and GCC loads them lane by lane.
-template <typename Word, typename T>
-RBPT_INLINE Word word_of(const T *array, int i, int word) {
-    static_assert(sizeof(T) % 4 == 0 && sizeof(Word) == 4, "structs of whole words");
-    return reinterpret_cast<const Word *>(array)[int(sizeof(T) / 4) * i + word];
-}
-
-/// Light i's fields that the vector stage reads, at 32-bit word indices (word_of()).
-RBPT_INLINE WavefrontScene::Light load_light(const WavefrontScene::Light *lights, int i) {
-    using Light = WavefrontScene::Light;
-    auto word = [&](size_t offset) __attribute__((always_inline)) { return word_of<float>(lights, i, int(offset / 4)); };
-    Light l;
-    l.radiance = Color3f(word(offsetof(Light, radiance)), word(offsetof(Light, radiance) + 4), word(offsetof(Light, radiance) + 8));
-    l.has_normals = word_of<int>(lights, i, int(offsetof(Light, has_normals) / 4));
-    l.flip_normals = word_of<int>(lights, i, int(offsetof(Light, flip_normals) / 4));
-    l.area = word(offsetof(Light, area)), l.environment = word(offsetof(Light, environment));
-    l.sphere = word(offsetof(Light, sphere)), l.cx = word(offsetof(Light, cx)), l.cy = word(offsetof(Light, cy));
-    l.cz = word(offsetof(Light, cz)), l.radius = word(offsetof(Light, radius));
-    l.outside_radius2 = word(offsetof(Light, outside_radius2)), l.sign = word(offsetof(Light, sign));
-    l.aside = word(offsetof(Light, aside));
-    return l;
-}
-
 /// The lights' triangles (WavefrontScene::tri_vertex, tri_normal, tri_face_normal) read as
 /// Vec3s: triangle t's vertex j, its vertex normal, its face normal.
 struct LightTriangles {
@@ -648,9 +623,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec2 u{b.pe0[k], b.pe1[k]};
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
-        // (Several lights' fields read at word indices: indexed as Lights, GCC loads each
-        // lane by lane.)
-        const WavefrontScene::Light light = OneLight ? first : load_light(lights, index);
+        const WavefrontScene::Light &light = OneLight ? first : lights[index];
         // (The environment's direction, and a sphere's point seen from inside it: uniform on
         // the sphere, from u as selection left it.)
         const Vec3 env_d = NonMesh ? warp::square_to_uniform_sphere(u) : Vec3();
@@ -1418,6 +1391,15 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
         b.uvx[k] = read ? su[j] : 0.f, b.uvy[k] = read ? sv[j] : 0.f;
         b.done[k] = 1;
     }
+}
+
+/// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
+/// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
+/// offsets are 64-bit and GCC loads them lane by lane.
+template <typename Word, typename T>
+RBPT_INLINE Word word_of(const T *array, int i, int word) {
+    static_assert(sizeof(T) % 4 == 0 && sizeof(Word) == 4, "structs of whole words");
+    return reinterpret_cast<const Word *>(array)[int(sizeof(T) / 4) * i + word];
 }
 
 /// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
