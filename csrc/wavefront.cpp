@@ -1395,7 +1395,16 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
 
 /// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
 /// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
-/// offsets are 64-bit and GCC loads them lane by lane.
+/// offsets are 64-bit and GCC loads them lane by lane. Only where GCC gathers in hardware,
+/// tuned for Sapphire Rapids (build_flags.host_tuning: RBPT_GATHER_WORDS); under its other
+/// tunings it loads a gather's lanes one by one either way, and the structs' members read
+/// as such take fewer instructions (an AVX2 build, MARCH=x86-64-v3 with generic tuning, took
+/// 4% longer on the bunny and textured, 1.5% on veach-mis, with the word indices).
+#if defined(__tune_sapphirerapids__)
+#define RBPT_GATHER_WORDS 1
+#else
+#define RBPT_GATHER_WORDS 0
+#endif
 template <typename Word, typename T>
 RBPT_INLINE Word word_of(const T *array, int i, int word) {
     static_assert(sizeof(T) % 4 == 0 && sizeof(Word) == 4, "structs of whole words");
@@ -1416,28 +1425,40 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
     const int *flags = ws.triangle_flags.data();
     const uint32_t n_triangles = uint32_t(g.triangles.size());
     using F = WavefrontScene::ShapeFlag;
+#if RBPT_GATHER_WORDS
     // (Vertices and triangles read at 32-bit word indices: word_of().)
     auto vertex = [](const Vec3 *array, int v) __attribute__((always_inline)) {
         return Vec3{word_of<float>(array, v, 0), word_of<float>(array, v, 1), word_of<float>(array, v, 2)};
     };
     constexpr int N = int(offsetof(Triangle, n) / 4);  // (the face normal's first word)
+#endif
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         // (Signed 32-bit indices: GCC gathers with unsigned ones only through 64-bit indices,
         // two instructions per vector, and for some gathers not at all.)
         const int t = int(std::min(b.prim[k], n_triangles - 1));  // (a select would select addresses)
         const int flag = flags[t];
+        float b1 = b.hu[k], b2 = b.hv[k], b0 = 1.f - b1 - b2;
+#if RBPT_GATHER_WORDS
         const int v0 = int(word_of<uint32_t>(triangles, t, 0)), v1 = int(word_of<uint32_t>(triangles, t, 1));
         const int v2 = int(word_of<uint32_t>(triangles, t, 2));
-        float b1 = b.hu[k], b2 = b.hv[k], b0 = 1.f - b1 - b2;
         const Vec3 p0 = vertex(positions, v0), p1 = vertex(positions, v1), p2 = vertex(positions, v2);
+        const Vec3 face_n{word_of<float>(triangles, t, N), word_of<float>(triangles, t, N + 1), word_of<float>(triangles, t, N + 2)};
+        auto vertex_normal = [&](int v) __attribute__((always_inline)) { return vertex(normals, v); };
+#else
+        const Triangle &tri = triangles[t];
+        const int v0 = int(tri.v[0]), v1 = int(tri.v[1]), v2 = int(tri.v[2]);
+        const Vec3 &p0 = positions[v0], &p1 = positions[v1], &p2 = positions[v2];
+        const Vec3 face_n{tri.n.x, tri.n.y, tri.n.z};
+        auto vertex_normal = [&](int v) __attribute__((always_inline)) -> const Vec3 & { return normals[v]; };
+#endif
         Vec3 p = p0 * b0 + p1 * b1 + p2 * b2;
         Vec3 p_error = gamma(7) * (vabs(p0 * b0) + vabs(p1 * b1) + vabs(p2 * b2));
         // The shading normal: the vertex normals interpolated, or the face's; both flipped
         // with flip_normals (as a product with -1: exact).
-        Vec3 face_n{word_of<float>(triangles, t, N), word_of<float>(triangles, t, N + 1), word_of<float>(triangles, t, N + 2)}, ns = face_n;
+        Vec3 ns = face_n;
         if constexpr (Normals) {
-            Vec3 vn = normalize(vertex(normals, v0) * b0 + vertex(normals, v1) * b1 + vertex(normals, v2) * b2);
+            Vec3 vn = normalize(vertex_normal(v0) * b0 + vertex_normal(v1) * b1 + vertex_normal(v2) * b2);
             ns = select((flag & F::HasNormals) != 0, vn, face_n);
         }
         float sign = (flag & F::FlipNormals) != 0 ? -1.f : 1.f;
@@ -1582,8 +1603,8 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, Wavef
 void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecord *record) {
     const int *material = ws.prim_material.data(), *quick = ws.prim_quick.data();
     const WavefrontScene::Material *mats = ws.materials.data();
-    // (A material's constant inputs read at 32-bit word indices, word_of(): cornell-box, the
-    // cbox and textured 1-1.5% faster than indexed as Materials.)
+    // (A material's constant inputs read at 32-bit word indices where GCC gathers, word_of():
+    // cornell-box, the cbox and textured 1-1.5% faster than indexed as Materials.)
     using M = WavefrontScene::Material;
     constexpr int A = int(offsetof(M, ar) / 4), T = int(offsetof(M, tr) / 4);
     static_assert(offsetof(M, ag) == offsetof(M, ar) + 4 && offsetof(M, ab) == offsetof(M, ar) + 8 &&
@@ -1600,8 +1621,14 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
         b.mat[k] = m;
         b.shade[k] = b.prim[k] < n_prims && b.done[k] != 0 ? q : 0;
         b.record_rough[k] = b.record_reflect[k] = b.record_refract[k] = -1;
+#if RBPT_GATHER_WORDS
         b.ar[k] = word_of<float>(mats, m, A), b.ag[k] = word_of<float>(mats, m, A + 1), b.ab[k] = word_of<float>(mats, m, A + 2);
         b.tr[k] = word_of<float>(mats, m, T), b.tg[k] = word_of<float>(mats, m, T + 1), b.tb[k] = word_of<float>(mats, m, T + 2);
+#else
+        const WavefrontScene::Material &mat = mats[m];
+        b.ar[k] = mat.ar, b.ag[k] = mat.ag, b.ab[k] = mat.ab;
+        b.tr[k] = mat.tr, b.tg[k] = mat.tg, b.tb[k] = mat.tb;
+#endif
     }
     for (const WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
         with_flags([&](auto recorded) {
