@@ -1393,18 +1393,20 @@ void sphere_interactions(Batch &b, int *list, int m, uint32_t n_triangles, const
     }
 }
 
-/// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
-/// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
-/// offsets are 64-bit and GCC loads them lane by lane. Only where GCC gathers in hardware,
-/// tuned for Sapphire Rapids (build_flags.host_tuning: RBPT_GATHER_WORDS); under its other
-/// tunings it loads a gather's lanes one by one either way, and the structs' members read
-/// as such take fewer instructions (an AVX2 build, MARCH=x86-64-v3 with generic tuning, took
-/// 4% longer on the bunny and textured, 1.5% on veach-mis, with the word indices).
+/// Whether the vector loops read the fields they gather with word_of(): only where GCC
+/// gathers in hardware, tuned for Sapphire Rapids (build_flags.host_tuning). Under its other
+/// tunings it loads a gather's lanes one by one either way, and the structs' members read as
+/// such take fewer instructions (an AVX2 build, MARCH=x86-64-v3 with generic tuning, took 4%
+/// longer on the bunny and textured, 1.5% on veach-mis, with the word indices).
 #if defined(__tune_sapphirerapids__)
 #define RBPT_GATHER_WORDS 1
 #else
 #define RBPT_GATHER_WORDS 0
 #endif
+
+/// Word `word` of element i of `array` (structs of whole 4-byte words), read at the signed
+/// 32-bit index sizeof(T) / 4 i + word, which GCC gathers in hardware: indexed as T, the
+/// offsets are 64-bit and GCC loads them lane by lane.
 template <typename Word, typename T>
 RBPT_INLINE Word word_of(const T *array, int i, int word) {
     static_assert(sizeof(T) % 4 == 0 && sizeof(Word) == 4, "structs of whole words");
