@@ -1,6 +1,7 @@
 """Shared fixtures: paths to the public scenes and small scenes built in code."""
 import contextlib
 import importlib.util
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -151,6 +152,13 @@ def l2_gradient_samples(scene, key: str, spp: int, n: int, mean_spp: int):
 OPT_FLAGS = ["-std=c++17", "-fopenmp", "-fwrapv", *build_flags.OPTIMISED]
 
 
+def uninstrumented_env() -> dict:
+    """This process's environment without LD_PRELOAD, for the compiler and the standalone
+    programs the tests build: under `make test SANITIZE=1` it preloads the sanitizer
+    runtimes, which are for the (uninstrumented) Python process alone."""
+    return {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+
+
 def assert_marked_loops_vectorise(source: str, pragma: str, march: str, tmp_path: Path) -> int:
     """Compile csrc/`source` for `march` with GCC's vectoriser report and assert that the loop
     after each `pragma` line vectorises in every template instance (an edit that stops GCC, a
@@ -163,7 +171,7 @@ def assert_marked_loops_vectorise(source: str, pragma: str, march: str, tmp_path
     loops = [i + 2 for i, line in enumerate(lines) if line.strip() == pragma]  # the for's line
     out = subprocess.run(["g++", *OPT_FLAGS, *build_flags.target_flags(march), f"-I{ROOT / 'csrc'}", "-c", str(path),
                           "-o", str(tmp_path / "marked.o"), "-fopt-info-vec-all"],
-                         capture_output=True, text=True, check=True).stderr.splitlines()
+                         capture_output=True, text=True, check=True, env=uninstrumented_env()).stderr.splitlines()
     for line in loops:
         at = [entry for entry in out if f"{source}:{line}:" in entry]
         assert any("loop vectorized" in entry for entry in at), f"line {line}: {lines[line - 1].strip()}"

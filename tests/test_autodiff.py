@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import uninstrumented_env
+
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT / "tests" / "cpp" / "test_autodiff.cpp"
 
@@ -34,7 +36,7 @@ def test01_cpp_autodiff_suite(tmp_path):
              "-fno-omit-frame-pointer", "-g", "-O1"] if sanitize else ["-O2"]
     cmd = [cxx, "-std=c++17", *flags, "-Wall", "-I", str(ROOT / "csrc"), str(SOURCE), "-o", str(exe)]
     # The compiler is not instrumented: keep the preloaded sanitizer runtime away from it.
-    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+    env = uninstrumented_env()
     build = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert build.returncode == 0, f"compilation failed: {' '.join(cmd)}\n{build.stderr}"
     assert "warning:" not in build.stderr, f"compiler warnings:\n{build.stderr}"

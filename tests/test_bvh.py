@@ -10,7 +10,7 @@ import torch
 
 import torch_rbpt as tr
 from torch_rbpt import build_flags, meshes
-from conftest import OPT_FLAGS, ROOT, SHARED, assert_marked_loops_vectorise
+from conftest import OPT_FLAGS, ROOT, SHARED, assert_marked_loops_vectorise, uninstrumented_env
 
 
 def _mesh_scene(mesh_dict):
@@ -552,7 +552,8 @@ def test14_flat_pass_is_the_traversals_in_every_build(tmp_path):
         exe = tmp_path / f"flat_pass_{march}"
         build = subprocess.run(["g++", *OPT_FLAGS, *build_flags.target_flags(march), f"-I{ROOT / 'csrc'}",
                                 str(ROOT / "tests" / "cpp" / "flat_pass.cpp"), str(ROOT / "csrc" / "bvh.cpp"),
-                                str(ROOT / "csrc" / "shapes.cpp"), "-o", str(exe)], capture_output=True, text=True)
+                                str(ROOT / "csrc" / "shapes.cpp"), "-o", str(exe)], capture_output=True, text=True,
+                               env=uninstrumented_env())
         assert build.returncode == 0, build.stderr[-3000:]
         run = subprocess.run([str(exe)], capture_output=True, text=True, timeout=120)
         fields = run.stdout.split()

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import uninstrumented_env
+
 ROOT = Path(__file__).resolve().parents[1]
 
 PROGRAM = r"""
@@ -115,7 +117,7 @@ def _run_program(tmp_path, march):
     source = tmp_path / "select.cpp"
     source.write_text(PROGRAM)
     exe = tmp_path / "select"
-    env = {k: v for k, v in os.environ.items() if k != "LD_PRELOAD"}
+    env = uninstrumented_env()
     build = subprocess.run([cxx, "-std=c++17", "-O2", f"-march={march}", "-Wall", "-I", str(ROOT / "csrc"),
                             str(source), "-o", str(exe)], capture_output=True, text=True, env=env)
     assert build.returncode == 0, build.stderr
