@@ -1,8 +1,9 @@
 // BVH::intersect_columns (the flat pass: every triangle against rays in SIMD lanes) against
-// BVH::intersect (the traversal), bitwise, in whichever build this is compiled for: test_bvh's
-// test15 compiles it for the portable target, for AVX2 and for this machine, whose chunk
-// tests are three different codes. Prints the number of rays, of hits, of rays whose hit
-// differs, and a hash of every hit's bits (the same in every build).
+// BVH::intersect (the traversal), bitwise, and the shadow rays through BVH::root_masks'
+// masks against BVH::occluded, in whichever build this is compiled for: test_bvh's test14
+// compiles it for AVX2 and for this machine, whose chunk tests and masks are different
+// codes. Prints the number of rays, of hits, of blocked rays, of rays whose hit or blocking
+// differs, and a hash of every hit's bits and mask (the same in every build).
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -56,7 +57,7 @@ uint64_t hash_bits(uint64_t h, const void *p, size_t n) {
 
 int main() {
     uint64_t hash = 1469598103934665603ull;
-    long rays = 0, hits = 0, differ = 0;
+    long rays = 0, hits = 0, blocked = 0, differ = 0;
     // 14 triangles (each hit's rounding bound in the pass) and 30 (deferred to the nearest
     // hit: BVH::flat_rounding_check); both below BVH::FlatTriangles, so the tree is flat.
     for (int variant = 0; variant < 2; ++variant) {
@@ -129,8 +130,25 @@ int main() {
             hits += hit.prim != ~0u;
             hash = hash_bits(hash_bits(hash, a, sizeof(a)), &prim[k], sizeof(uint32_t));
         }
+        // The root's masks (BVH::root_masks: in AVX2 or AVX-512 intrinsics where the build has
+        // them) and the shadow rays' test through them (the wavefront's, in trees of one node)
+        // against occluded(), and the masks into the hash.
+        std::vector<int> mask(n);
+        for (int k0 = 0; k0 < n; k0 += BVH::MaxColumns) {
+            const int m = std::min(BVH::MaxColumns, n - k0);
+            bvh.root_masks({&ox[k0], &oy[k0], &oz[k0], &dx[k0], &dy[k0], &dz[k0], &tmin[k0], &tmax[k0]}, m, &mask[k0]);
+        }
+        for (int k = 0; k < n; ++k) {
+            Ray ray;
+            ray.o = {ox[k], oy[k], oz[k]}, ray.d = {dx[k], dy[k], dz[k]}, ray.tmin = tmin[k], ray.tmax = tmax[k];
+            const bool through_masks = bvh.occluded_children(ray, mask[k]);
+            differ += through_masks != bvh.occluded(ray);
+            blocked += through_masks;
+            hash = hash_bits(hash, &mask[k], sizeof(int));
+        }
         rays += n;
     }
-    std::printf("rays %ld hits %ld differ %ld hash %016llx\n", rays, hits, differ, (unsigned long long)hash);
+    std::printf("rays %ld hits %ld blocked %ld differ %ld hash %016llx\n", rays, hits, blocked, differ,
+                (unsigned long long)hash);
     return differ == 0 ? 0 : 1;
 }
