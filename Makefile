@@ -78,8 +78,9 @@ bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_simd.py
 
 # The comparison as on an AVX2-only machine: ours built for x86-64-v3, Mitsuba's kernels
-# compiled for Haswell with 8 lanes; results in benchmarks/results/avx2. A later plain `make`
-# rebuilds for this machine.
+# compiled for Haswell with 8 lanes and its Embree limited to AVX2 (the benchmarks re-run
+# themselves with benchmarks/embree_max_isa.cpp preloaded, built with g++); results in
+# benchmarks/results/avx2. A later plain `make` rebuilds for this machine.
 bench-avx2:
 	$(MAKE) MARCH=x86-64-v3 install
 	$(PYTHON) benchmarks/bench_error_time.py --mitsuba-isa avx2 --out benchmarks/results/avx2

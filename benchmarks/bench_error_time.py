@@ -42,9 +42,10 @@ version/variant and date head every table and are in every plot's title.
         [--mitsuba-isa avx2] [--out DIR]
 
 --mitsuba-isa avx2 compiles Mitsuba's kernels as on an AVX2-only machine (Haswell, 8 lanes
-instead of AVX-512's 16); with torch_rbpt built by `MARCH=x86-64-v3 pip install
---no-build-isolation -e .`, both renderers run as they would there (Embree still uses the
-host's AVX-512, so Mitsuba's ray casting is a little faster than on a real AVX2 machine).
+instead of AVX-512's 16) and limits its Embree to AVX2 (mitsuba_ref.limit_embree: the script
+re-runs itself with benchmarks/embree_max_isa.cpp preloaded, built with g++; until session 44
+Embree kept the host's AVX-512 there); with torch_rbpt built by `MARCH=x86-64-v3 pip install
+--no-build-isolation -e .`, both renderers run as they would there.
 
 --res is the film width; the height follows each scene's aspect ratio (veach-mis is 3:2,
 the others square). The default run (6 scenes, 256 wide, 4..256 spp, 3 repeats, 4096 spp
@@ -470,6 +471,10 @@ def parse_args(argv=None):
 
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
+    if not args.no_mitsuba:
+        why = mitsuba_ref.limit_embree(args.mitsuba_isa, args.cache, reexec=argv is None)
+        if why:
+            print(f"Mitsuba's Embree keeps its own instruction set: {why}")
     use_mitsuba = False
     if args.no_mitsuba:
         print("Mitsuba: not run (--no-mitsuba); references are our own renders.")

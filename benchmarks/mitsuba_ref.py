@@ -12,10 +12,15 @@ that file exists (libLLVM 15 crashes with the installed drjit).
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
+import shutil
+import subprocess
+import sys
 import time
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 LIBLLVM_PATH = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 PREFERRED_VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
@@ -80,7 +85,8 @@ def version() -> str:
 
 # Dr.Jit's LLVM backend compiles its kernels for the host CPU (16 lanes with AVX-512, 8 with
 # AVX2). For a comparison as on an AVX2-only machine, it can target Haswell with 8 lanes
-# instead (Embree, called from the kernels, still picks its own instruction set at run time).
+# instead; Embree, which the kernels call to cast their rays, picks its own instruction set
+# at run time, and limit_embree() limits it.
 _ISA_TARGETS = {"avx2": (b"haswell", b"+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+lzcnt,+popcnt,+sse4.2,"
                                      b"-avx512f,-avx512vl,-avx512dq,-avx512bw,-avx512cd", 8)}
 
@@ -88,8 +94,9 @@ _ISA_TARGETS = {"avx2": (b"haswell", b"+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+lzcnt,+
 def add_isa_argument(parser) -> None:
     """The benchmarks' --mitsuba-isa option (its value goes to set_isa)."""
     parser.add_argument("--mitsuba-isa", choices=["native", *_ISA_TARGETS], default="native",
-                        help="avx2: Mitsuba's kernels compiled for Haswell with 8 lanes, as on an "
-                             "AVX2-only machine (build ours with MARCH=x86-64-v3 for the same)")
+                        help="avx2: Mitsuba's kernels compiled for Haswell with 8 lanes and its "
+                             "Embree limited to AVX2, as on an AVX2-only machine (build ours "
+                             "with MARCH=x86-64-v3 for the same)")
 
 
 def _drjit_core():
@@ -115,13 +122,64 @@ def set_isa(isa: str) -> None:
 
 
 def isa() -> str:
-    """The LLVM backend's target CPU and lanes, e.g. 'znver5, 16 lanes' ('' for scalar)."""
+    """The LLVM backend's target CPU and lanes, e.g. 'znver5, 16 lanes' ('' for scalar), and
+    Embree's limit where limit_embree() set one ('haswell, 8 lanes, Embree max_isa=avx2')."""
     if variant().startswith("scalar"):
         return ""
     import ctypes
     core = _drjit_core()
     core._Z19jit_llvm_target_cpuv.restype = ctypes.c_char_p
-    return f"{core._Z19jit_llvm_target_cpuv().decode()}, {core._Z21jit_llvm_vector_widthv()} lanes"
+    limit = f", Embree max_isa={os.environ['RBPT_EMBREE_MAX_ISA']}" if embree_limited() else ""
+    return f"{core._Z19jit_llvm_target_cpuv().decode()}, {core._Z21jit_llvm_vector_widthv()} lanes{limit}"
+
+
+# Embree's instruction set for each --mitsuba-isa other than native (its max_isa setting).
+_EMBREE_MAX_ISA = {"avx2": "avx2"}
+_SHIM_SOURCE = Path(__file__).resolve().with_name("embree_max_isa.cpp")
+
+
+def embree_limited() -> bool:
+    """Whether this process runs with limit_embree()'s library preloaded."""
+    shim = os.environ.get("RBPT_EMBREE_SHIM", "")
+    return bool(shim) and shim in os.environ.get("LD_PRELOAD", "").split(":") and bool(os.environ.get("RBPT_EMBREE_MAX_ISA"))
+
+
+def limit_embree(isa: str, cache: Path, reexec: bool = True) -> str:
+    """Make Mitsuba's Embree cast rays with the instruction set of `isa` ('avx2'; 'native'
+    leaves Embree's own choice), as on a CPU that has no more: Mitsuba gives Embree no such
+    setting, so this builds benchmarks/embree_max_isa.cpp with g++ into `cache` (once) and
+    re-executes the running script (os.execve) with it preloaded, which appends
+    max_isa=<isa> to the configuration Mitsuba creates its Embree device with. Call it first
+    in a benchmark run from the command line, before Mitsuba is imported; with reexec False
+    (a benchmark's main called from Python) it does not re-execute. Returns '' where the limit
+    holds (or isa is native), else why it does not."""
+    if isa == "native" or embree_limited():
+        return ""
+    if isa not in _EMBREE_MAX_ISA:
+        raise ValueError(f"no Embree instruction set for {isa!r}")
+    spec = importlib.util.find_spec("mitsuba")
+    if spec is None or not spec.submodule_search_locations:
+        return "Mitsuba is not installed"
+    lib = Path(list(spec.submodule_search_locations)[0]) / "libembree3.so"
+    if not lib.exists():
+        return f"Mitsuba has no {lib.name} here"
+    if shutil.which("g++") is None:
+        return "g++ is needed to build embree_max_isa.cpp"
+    if not reexec:
+        return "not run from the command line (the limit needs the benchmark re-executed)"
+    shim = Path(cache).resolve() / "embree_max_isa.so"
+    if not shim.exists() or shim.stat().st_mtime < _SHIM_SOURCE.stat().st_mtime:
+        shim.parent.mkdir(parents=True, exist_ok=True)
+        build = subprocess.run(["g++", "-O2", "-shared", "-fPIC", str(_SHIM_SOURCE), "-o", str(shim), "-ldl"],
+                               capture_output=True, text=True)
+        if build.returncode != 0:
+            return f"building embree_max_isa.cpp failed: {build.stderr[-500:]}"
+    preload = ":".join(p for p in (str(shim), os.environ.get("LD_PRELOAD", "")) if p)
+    env = dict(os.environ, RBPT_EMBREE_SHIM=str(shim), RBPT_EMBREE_LIB=str(lib),
+               RBPT_EMBREE_MAX_ISA=_EMBREE_MAX_ISA[isa], LD_PRELOAD=preload)
+    print(f"re-running with Mitsuba's Embree limited to {_EMBREE_MAX_ISA[isa]} ({shim.name} preloaded)", flush=True)
+    sys.stderr.flush()
+    os.execve(sys.executable, [sys.executable, *sys.argv], env)
 
 
 # ----------------------------------------------------------------------------- scene loading

@@ -1,11 +1,13 @@
 """The benchmarks run in their smoke settings (ours only, no Mitsuba needed)."""
 import csv
 import math
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
 
-from conftest import SHARED, load_benchmark
+from conftest import ROOT, SHARED, load_benchmark, uninstrumented_env
 
 
 @pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
@@ -120,3 +122,36 @@ def test06_sweep_turns(tmp_path):
     assert rows[0]["rmse"] == pytest.approx((3 + 1 + 4 + 2) / 4)  # images of seeds 2, 0, 3, 1
     assert out["Mitsuba"][0][0]["seconds"] == pytest.approx(8.0)
     assert torch.allclose(mean, torch.full((2, 2, 3), 2.5))
+
+
+@pytest.mark.skipif(shutil.which("g++") is None, reason="needs g++")
+def test07_embree_limit_appends_max_isa(tmp_path):
+    # The AVX2 setting limits Mitsuba's Embree to AVX2 through a preloaded library
+    # (benchmarks/embree_max_isa.cpp) that puts itself in front of mitsuba::rtcNewDevice and
+    # passes Mitsuba's configuration on with max_isa appended. Here in front of a stand-in
+    # for Mitsuba's Embree, called as libmitsuba.so calls it (an imported symbol): the stand-in
+    # must receive the appended configuration, and the report must hold it.
+    fake = tmp_path / "libfake_embree.so"
+    (tmp_path / "fake.cpp").write_text(
+        '#include <cstdio>\n'
+        'namespace mitsuba { struct RTCDeviceTy; RTCDeviceTy *rtcNewDevice(const char *c) {'
+        ' std::printf("device %s\\n", c); return nullptr; } }\n')
+    (tmp_path / "main.cpp").write_text(
+        '#include <cstdio>\n#include <cstdlib>\n'
+        'namespace mitsuba { struct RTCDeviceTy; RTCDeviceTy *rtcNewDevice(const char *c); }\n'
+        'int main() { mitsuba::rtcNewDevice("threads=2,user_threads=2");'
+        ' std::printf("report %s\\n", std::getenv("RBPT_EMBREE_CONFIG")); }\n')
+    shim = tmp_path / "shim.so"
+    for cmd in (["g++", "-shared", "-fPIC", str(tmp_path / "fake.cpp"), "-o", str(fake)],
+                ["g++", str(tmp_path / "main.cpp"), str(fake), f"-Wl,-rpath,{tmp_path}", "-o", str(tmp_path / "main")],
+                ["g++", "-O2", "-shared", "-fPIC", str(ROOT / "benchmarks" / "embree_max_isa.cpp"), "-o", str(shim), "-ldl"]):
+        build = subprocess.run(cmd, capture_output=True, text=True, env=uninstrumented_env())
+        assert build.returncode == 0, build.stderr[-2000:]
+    env = dict(uninstrumented_env(), LD_PRELOAD=str(shim), RBPT_EMBREE_LIB=str(fake), RBPT_EMBREE_MAX_ISA="avx2")
+    run = subprocess.run([str(tmp_path / "main")], capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split("\n")[:2] == ["device threads=2,user_threads=2,max_isa=avx2",
+                                          "report threads=2,user_threads=2,max_isa=avx2"]
+    # Without the stand-in's path it stops with a message rather than running unlimited.
+    run = subprocess.run([str(tmp_path / "main")], capture_output=True, text=True, env=dict(env, RBPT_EMBREE_LIB=""))
+    assert run.returncode != 0 and "no mitsuba::rtcNewDevice" in run.stderr
