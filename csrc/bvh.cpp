@@ -403,6 +403,92 @@ std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vecto
     return blockers;
 }
 
+#if defined(__AVX2__)
+/// A register of rays (flat_triangles()' chunk tests, child_masks() and ShapeBoxes::entered()
+/// in intrinsics): with
+/// AVX-512, sixteen lanes and comparisons as bit masks; with AVX2, eight lanes and
+/// comparisons as lanes of all ones. Each operation is the scalar one, lane by lane (min(a,
+/// b) is x86's: a < b ? a : b, the second operand when either is NaN).
+struct FlatLanes {
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
+    static constexpr int Width = 16;
+    using F = __m512;
+    using I = __m512i;
+    using M = __mmask16;
+    static F load(const float *p) { return _mm512_loadu_ps(p); }
+    static I load(const int *p) { return _mm512_loadu_si512(p); }
+    static I load(const uint32_t *p) { return _mm512_loadu_si512(p); }
+    static void store(float *p, F a) { _mm512_storeu_ps(p, a); }
+    static void store(uint32_t *p, I a) { _mm512_storeu_si512(p, a); }
+    static F set1(float x) { return _mm512_set1_ps(x); }
+    static I set1(uint32_t x) { return _mm512_set1_epi32(int(x)); }
+    static F add(F a, F b) { return _mm512_add_ps(a, b); }
+    static F sub(F a, F b) { return _mm512_sub_ps(a, b); }
+    static F mul(F a, F b) { return _mm512_mul_ps(a, b); }
+    static F div(F a, F b) { return _mm512_div_ps(a, b); }
+    static F min(F a, F b) { return _mm512_min_ps(a, b); }
+    static F max(F a, F b) { return _mm512_max_ps(a, b); }
+    static F abs(F a) { return _mm512_abs_ps(a); }
+    /// Lane k: table's lane index[k] (index < 3: a vertex's coordinate along the ray's axis).
+    static F pick(I index, F table) { return _mm512_permutexvar_ps(index, table); }
+    /// A vertex's three coordinates in lanes 0 to 2.
+    static F vertex(const float v[3]) { return _mm512_maskz_loadu_ps(__mmask16(0x7), v); }
+    static M eq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_EQ_OQ); }
+    static M neq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_NEQ_UQ); }
+    static M lt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
+    static M le(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ); }
+    static M gt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GT_OQ); }
+    static M ge(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GE_OQ); }
+    static M either(M a, M b) { return a | b; }
+    static M both(M a, M b) { return a & b; }
+    static bool any(M m) { return m != 0; }
+    /// m ? b : a, lane by lane.
+    static F select(M m, F a, F b) { return _mm512_mask_mov_ps(a, m, b); }
+    static I select(M m, I a, I b) { return _mm512_mask_mov_epi32(a, m, b); }
+    static I bit_or(I a, I b) { return _mm512_or_si512(a, b); }
+    /// (sign bit of s set) ? b : a, lane by lane.
+    static F select_by_sign(F s, F a, F b) { return _mm512_mask_blend_ps(_mm512_movepi32_mask(_mm512_castps_si512(s)), a, b); }
+#else
+    static constexpr int Width = 8;
+    using F = __m256;
+    using I = __m256i;
+    using M = __m256;
+    static F load(const float *p) { return _mm256_loadu_ps(p); }
+    static I load(const int *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
+    static I load(const uint32_t *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
+    static void store(float *p, F a) { _mm256_storeu_ps(p, a); }
+    static void store(uint32_t *p, I a) { _mm256_storeu_si256(reinterpret_cast<__m256i *>(p), a); }
+    static F set1(float x) { return _mm256_set1_ps(x); }
+    static I set1(uint32_t x) { return _mm256_set1_epi32(int(x)); }
+    static F add(F a, F b) { return _mm256_add_ps(a, b); }
+    static F sub(F a, F b) { return _mm256_sub_ps(a, b); }
+    static F mul(F a, F b) { return _mm256_mul_ps(a, b); }
+    static F div(F a, F b) { return _mm256_div_ps(a, b); }
+    static F min(F a, F b) { return _mm256_min_ps(a, b); }
+    static F max(F a, F b) { return _mm256_max_ps(a, b); }
+    static F abs(F a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.f), a); }
+    static F pick(I index, F table) { return _mm256_permutevar8x32_ps(table, index); }
+    static F vertex(const float v[3]) { return _mm256_setr_ps(v[0], v[1], v[2], 0.f, 0.f, 0.f, 0.f, 0.f); }
+    static M eq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_EQ_OQ); }
+    static M neq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_NEQ_UQ); }
+    static M lt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+    static M le(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+    static M gt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
+    static M ge(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
+    static M either(M a, M b) { return _mm256_or_ps(a, b); }
+    static M both(M a, M b) { return _mm256_and_ps(a, b); }
+    static bool any(M m) { return _mm256_movemask_ps(m) != 0; }
+    static F select(M m, F a, F b) { return _mm256_blendv_ps(a, b, m); }
+    static I select(M m, I a, I b) {
+        return _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(a), _mm256_castsi256_ps(b), m));
+    }
+    static F select_by_sign(F s, F a, F b) { return _mm256_blendv_ps(a, b, s); }
+    static I bit_or(I a, I b) { return _mm256_or_si256(a, b); }
+#endif
+};
+static_assert(BVH::FlatChunk % FlatLanes::Width == 0, "a chunk is whole registers of rays");
+#endif
+
 void ShapeBoxes::add(const Geometry &geometry, uint32_t shape) {
     const Shape &s = geometry.shapes[shape];
     Bounds box;
@@ -429,11 +515,37 @@ void ShapeBoxes::entered(const RayColumns &r, int n, int *enters) const {
                           ((std::abs(r_dx[k]) + std::abs(r_dy[k])) + std::abs(r_dz[k]));
         enters[k] = sum < Infinity ? 0 : 1;
     }
-    for (int i = 0; i < size(); ++i) {
-        const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
-#pragma GCC ivdep
-        for (int k = 0; k < n; ++k) {
-            const Vec3 o{r_ox[k], r_oy[k], r_oz[k]}, inv_d{1.f / r_dx[k], 1.f / r_dy[k], 1.f / r_dz[k]};
+    int k0 = 0;
+#if defined(__AVX2__)
+    // A register of rays at a time against every box (as BVH::child_masks(): the rays'
+    // columns loaded and 1 / d taken once for all boxes).
+    using L = FlatLanes;
+    using F = typename L::F;
+    const F widen = L::set1(1.0001f), one = L::set1(1.f);
+    for (; k0 + L::Width <= n; k0 += L::Width) {
+        const F o[3] = {L::load(r_ox + k0), L::load(r_oy + k0), L::load(r_oz + k0)};
+        const F inv_d[3] = {L::div(one, L::load(r_dx + k0)), L::div(one, L::load(r_dy + k0)), L::div(one, L::load(r_dz + k0))};
+        const F tmin = L::load(r_tmin + k0), tmax = L::load(r_tmax + k0);
+        typename L::I any = L::load(enters + k0);
+        for (int i = 0; i < size(); ++i) {
+            F t0 = tmin, t1 = tmax;
+            for (int a = 0; a < 3; ++a) {
+                const F box_lo = L::set1(lo[a][i]), box_hi = L::set1(hi[a][i]);
+                const F t_near = L::mul(L::sub(L::select_by_sign(inv_d[a], box_lo, box_hi), o[a]), inv_d[a]);
+                const F t_far = L::mul(L::sub(L::select_by_sign(inv_d[a], box_hi, box_lo), o[a]), inv_d[a]);
+                t0 = L::max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
+                t1 = L::min(t_far, t1);
+            }
+            any = L::select(L::le(t0, L::mul(t1, widen)), any, L::set1(1u));
+        }
+        L::store(reinterpret_cast<uint32_t *>(enters + k0), any);
+    }
+#endif
+    // (Without AVX2, and the rays past the last whole register.)
+    for (int k = k0; k < n; ++k) {
+        const Vec3 o{r_ox[k], r_oy[k], r_oz[k]}, inv_d{1.f / r_dx[k], 1.f / r_dy[k], 1.f / r_dz[k]};
+        for (int i = 0; i < size(); ++i) {
+            const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
             enters[k] |= enters_box(box_lo, box_hi, o, inv_d, r_tmin[k], r_tmax[k], 1.0001f);
         }
     }
@@ -784,90 +896,6 @@ bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit
     return found;
 }
 
-#if defined(__AVX2__)
-/// A register of rays (flat_triangles()' chunk tests and child_masks() in intrinsics): with
-/// AVX-512, sixteen lanes and comparisons as bit masks; with AVX2, eight lanes and
-/// comparisons as lanes of all ones. Each operation is the scalar one, lane by lane (min(a,
-/// b) is x86's: a < b ? a : b, the second operand when either is NaN).
-struct FlatLanes {
-#if defined(__AVX512F__) && defined(__AVX512DQ__)
-    static constexpr int Width = 16;
-    using F = __m512;
-    using I = __m512i;
-    using M = __mmask16;
-    static F load(const float *p) { return _mm512_loadu_ps(p); }
-    static I load(const int *p) { return _mm512_loadu_si512(p); }
-    static I load(const uint32_t *p) { return _mm512_loadu_si512(p); }
-    static void store(float *p, F a) { _mm512_storeu_ps(p, a); }
-    static void store(uint32_t *p, I a) { _mm512_storeu_si512(p, a); }
-    static F set1(float x) { return _mm512_set1_ps(x); }
-    static I set1(uint32_t x) { return _mm512_set1_epi32(int(x)); }
-    static F add(F a, F b) { return _mm512_add_ps(a, b); }
-    static F sub(F a, F b) { return _mm512_sub_ps(a, b); }
-    static F mul(F a, F b) { return _mm512_mul_ps(a, b); }
-    static F div(F a, F b) { return _mm512_div_ps(a, b); }
-    static F min(F a, F b) { return _mm512_min_ps(a, b); }
-    static F max(F a, F b) { return _mm512_max_ps(a, b); }
-    static F abs(F a) { return _mm512_abs_ps(a); }
-    /// Lane k: table's lane index[k] (index < 3: a vertex's coordinate along the ray's axis).
-    static F pick(I index, F table) { return _mm512_permutexvar_ps(index, table); }
-    /// A vertex's three coordinates in lanes 0 to 2.
-    static F vertex(const float v[3]) { return _mm512_maskz_loadu_ps(__mmask16(0x7), v); }
-    static M eq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_EQ_OQ); }
-    static M neq(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_NEQ_UQ); }
-    static M lt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LT_OQ); }
-    static M le(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_LE_OQ); }
-    static M gt(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GT_OQ); }
-    static M ge(F a, F b) { return _mm512_cmp_ps_mask(a, b, _CMP_GE_OQ); }
-    static M either(M a, M b) { return a | b; }
-    static M both(M a, M b) { return a & b; }
-    static bool any(M m) { return m != 0; }
-    /// m ? b : a, lane by lane.
-    static F select(M m, F a, F b) { return _mm512_mask_mov_ps(a, m, b); }
-    static I select(M m, I a, I b) { return _mm512_mask_mov_epi32(a, m, b); }
-    static I bit_or(I a, I b) { return _mm512_or_si512(a, b); }
-    /// (sign bit of s set) ? b : a, lane by lane.
-    static F select_by_sign(F s, F a, F b) { return _mm512_mask_blend_ps(_mm512_movepi32_mask(_mm512_castps_si512(s)), a, b); }
-#else
-    static constexpr int Width = 8;
-    using F = __m256;
-    using I = __m256i;
-    using M = __m256;
-    static F load(const float *p) { return _mm256_loadu_ps(p); }
-    static I load(const int *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
-    static I load(const uint32_t *p) { return _mm256_loadu_si256(reinterpret_cast<const __m256i *>(p)); }
-    static void store(float *p, F a) { _mm256_storeu_ps(p, a); }
-    static void store(uint32_t *p, I a) { _mm256_storeu_si256(reinterpret_cast<__m256i *>(p), a); }
-    static F set1(float x) { return _mm256_set1_ps(x); }
-    static I set1(uint32_t x) { return _mm256_set1_epi32(int(x)); }
-    static F add(F a, F b) { return _mm256_add_ps(a, b); }
-    static F sub(F a, F b) { return _mm256_sub_ps(a, b); }
-    static F mul(F a, F b) { return _mm256_mul_ps(a, b); }
-    static F div(F a, F b) { return _mm256_div_ps(a, b); }
-    static F min(F a, F b) { return _mm256_min_ps(a, b); }
-    static F max(F a, F b) { return _mm256_max_ps(a, b); }
-    static F abs(F a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.f), a); }
-    static F pick(I index, F table) { return _mm256_permutevar8x32_ps(table, index); }
-    static F vertex(const float v[3]) { return _mm256_setr_ps(v[0], v[1], v[2], 0.f, 0.f, 0.f, 0.f, 0.f); }
-    static M eq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_EQ_OQ); }
-    static M neq(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_NEQ_UQ); }
-    static M lt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
-    static M le(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
-    static M gt(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GT_OQ); }
-    static M ge(F a, F b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
-    static M either(M a, M b) { return _mm256_or_ps(a, b); }
-    static M both(M a, M b) { return _mm256_and_ps(a, b); }
-    static bool any(M m) { return _mm256_movemask_ps(m) != 0; }
-    static F select(M m, F a, F b) { return _mm256_blendv_ps(a, b, m); }
-    static I select(M m, I a, I b) {
-        return _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(a), _mm256_castsi256_ps(b), m));
-    }
-    static F select_by_sign(F s, F a, F b) { return _mm256_blendv_ps(a, b, s); }
-    static I bit_or(I a, I b) { return _mm256_or_si256(a, b); }
-#endif
-};
-static_assert(BVH::FlatChunk % FlatLanes::Width == 0, "a chunk is whole registers of rays");
-#endif
 
 /// For each ray, the mask of the root's children in `children` whose boxes it enters in
 /// (tmin, min(tmax, limit[k])): NodeTest's operations lane by lane (so the per-ray
@@ -1458,9 +1486,15 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
         for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), rays, n);
     }
     // Each sphere against the rays whose line passes near it (a generous float test; the
-    // hit itself is intersect_sphere()'s, in double, for those rays in lanes).
-    alignas(64) float sphere_t[MaxColumns], sphere_hit[MaxColumns];
+    // hit itself is intersect_sphere()'s, in double, for those rays in lanes). Its margin
+    // grows with the origin's distance |oc| <= |oc|_1 (no square root), and 1 / |d|^2 is
+    // taken once per ray: neither a division nor a square root per sphere.
+    alignas(64) float sphere_t[MaxColumns], sphere_hit[MaxColumns], inv_dd[MaxColumns];
     alignas(64) int near[MaxColumns], near_list[MaxColumns];
+    if (!flat_spheres_.empty()) {
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) inv_dd[k] = 1.f / (r.dx[k] * r.dx[k] + r.dy[k] * r.dy[k] + r.dz[k] * r.dz[k]);
+    }
     for (uint32_t prim : flat_spheres_) {
         const Shape &s = geometry_->analytic_shape(prim);
         const Vec3 c = s.center;
@@ -1469,9 +1503,9 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
         for (int k = 0; k < n; ++k) {
             Vec3 oc{r.ox[k] - c.x, r.oy[k] - c.y, r.oz[k] - c.z};
             Vec3 d{r.dx[k], r.dy[k], r.dz[k]};
-            float along = dot(oc, d) / dot(d, d);
+            float along = dot(oc, d) * inv_dd[k];
             Vec3 closest = oc - d * along;
-            float reach = radius + 1e-3f * (radius + norm(oc));
+            float reach = radius + 1e-3f * (radius + (std::abs(oc.x) + std::abs(oc.y) + std::abs(oc.z)));
             near[k] = squared_norm(closest) > reach * reach ? 0 : 1;
         }
         // The near rays listed, tested in lanes (the list padded to whole vectors), their

@@ -232,11 +232,12 @@ def test06_flat_intersection_vectorises(tmp_path, march):
     # pass's chunks (the box tests of its halves, the triangle tests of both halves or of
     # one) and the rest, the nearest hits' rounding check (its cheap bound for every ray, the
     # exact one for the doubtful, the primitives' gather), each sphere's near test, the hits'
-    # copy, the flags of the rays a two-phase tree traces further or retraces, and
-    # ShapeBoxes::entered's finite check and box tests) vectorise for AVX2 and for this
-    # machine: an edit that stops GCC keeps the hits bitwise equal and only makes them
-    # slower, which no other test sees. (With AVX2 and AVX-512 the chunks' box and triangle
-    # tests, and the root's children's box tests, are written in their intrinsics: test14.)
+    # copy, the flags of the rays a two-phase tree traces further or retraces, the rays'
+    # 1 / |d|^2 for the spheres' near tests, and ShapeBoxes::entered's finite check)
+    # vectorise for AVX2 and for this machine: an edit that stops GCC keeps the hits bitwise
+    # equal and only makes them slower, which no other test sees. (With AVX2 and AVX-512 the
+    # chunks' box and triangle tests, the root's children's box tests and ShapeBoxes'
+    # box tests are written in their intrinsics: test14.)
     assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 14
 
 
@@ -546,7 +547,9 @@ def test14_flat_pass_is_the_traversals_in_every_build(tmp_path):
     # along the axes, non-finite, with bounded intervals, in a flat tree of 14 triangles and
     # of 30 (the rounding bound deferred), against the traversal's, bit for bit; the same
     # rays as shadow rays through the root's masks (BVH::root_masks, also in intrinsics)
-    # against occluded(); and both builds must give the same hits and masks (the same hash).
+    # against occluded(); ShapeBoxes::entered (also in intrinsics) flagging every ray whose
+    # hit is on its shapes; and both builds must give the same hits, masks and flags (the
+    # same hash).
     outputs = {}
     for march in ("x86-64-v3", "native"):
         exe = tmp_path / f"flat_pass_{march}"
@@ -561,5 +564,6 @@ def test14_flat_pass_is_the_traversals_in_every_build(tmp_path):
         result = dict(zip(fields[::2], fields[1::2]))
         assert int(result["rays"]) == 12288 and int(result["hits"]) > 6000 and int(result["differ"]) == 0, (march, result)
         assert int(result["blocked"]) == int(result["hits"]), (march, result)  # (blocked where there is a hit)
+        assert 3000 < int(result["entered"]) < 12288, (march, result)
         outputs[march] = result
     assert outputs["x86-64-v3"] == outputs["native"]

@@ -1,9 +1,11 @@
 // BVH::intersect_columns (the flat pass: every triangle against rays in SIMD lanes) against
-// BVH::intersect (the traversal), bitwise, and the shadow rays through BVH::root_masks'
-// masks against BVH::occluded, in whichever build this is compiled for: test_bvh's test14
-// compiles it for AVX2 and for this machine, whose chunk tests and masks are different
-// codes. Prints the number of rays, of hits, of blocked rays, of rays whose hit or blocking
-// differs, and a hash of every hit's bits and mask (the same in every build).
+// BVH::intersect (the traversal), bitwise, the shadow rays through BVH::root_masks' masks
+// against BVH::occluded, and ShapeBoxes::entered against the hits it must not skip, in
+// whichever build this is compiled for: test_bvh's test14 compiles it for AVX2 and for this
+// machine, whose chunk tests, masks and box tests are different codes. Prints the number of
+// rays, of hits, of blocked rays, of flagged rays, of rays whose hit or blocking differs or
+// whose hit was not flagged, and a hash of every hit's bits, mask and flag (the same in every
+// build).
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -57,7 +59,7 @@ uint64_t hash_bits(uint64_t h, const void *p, size_t n) {
 
 int main() {
     uint64_t hash = 1469598103934665603ull;
-    long rays = 0, hits = 0, blocked = 0, differ = 0;
+    long rays = 0, hits = 0, blocked = 0, entered = 0, differ = 0;
     // 14 triangles (each hit's rounding bound in the pass) and 30 (deferred to the nearest
     // hit: BVH::flat_rounding_check); both below BVH::FlatTriangles, so the tree is flat.
     for (int variant = 0; variant < 2; ++variant) {
@@ -146,9 +148,25 @@ int main() {
             blocked += through_masks;
             hash = hash_bits(hash, &mask[k], sizeof(int));
         }
+        // ShapeBoxes::entered (in intrinsics too) over the first box and the quad: it must
+        // flag every ray whose nearest hit is on one of them (a ray it does not flag skips
+        // its query), and its flags go into the hash.
+        ShapeBoxes boxes;
+        boxes.add(g, 0), boxes.add(g, 1);
+        std::vector<int> enters(n);
+        for (int k0 = 0; k0 < n; k0 += BVH::MaxColumns) {
+            const int m = std::min(BVH::MaxColumns, n - k0);
+            boxes.entered({&ox[k0], &oy[k0], &oz[k0], &dx[k0], &dy[k0], &dz[k0], &tmin[k0], &tmax[k0]}, m, &enters[k0]);
+        }
+        for (int k = 0; k < n; ++k) {
+            const bool on_them = prim[k] != ~0u && g.triangles[prim[k]].shape <= 1;
+            differ += on_them && !enters[k];
+            entered += enters[k];
+            hash = hash_bits(hash, &enters[k], sizeof(int));
+        }
         rays += n;
     }
-    std::printf("rays %ld hits %ld blocked %ld differ %ld hash %016llx\n", rays, hits, blocked, differ,
-                (unsigned long long)hash);
+    std::printf("rays %ld hits %ld blocked %ld entered %ld differ %ld hash %016llx\n", rays, hits, blocked, entered,
+                differ, (unsigned long long)hash);
     return differ == 0 ? 0 : 1;
 }
