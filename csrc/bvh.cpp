@@ -485,6 +485,18 @@ struct FlatLanes {
     static F select_by_sign(F s, F a, F b) { return _mm256_blendv_ps(a, b, s); }
     static I bit_or(I a, I b) { return _mm256_or_si256(a, b); }
 #endif
+    /// enters_box() lane by lane: whether each ray (origin o, 1 / d inv_d) enters the box
+    /// [lo, hi] within [t0, t1], t1 widened by `widen`.
+    static M enters(const F o[3], const F inv_d[3], const float lo[3], const float hi[3], F t0, F t1, F widen) {
+        for (int a = 0; a < 3; ++a) {
+            const F box_lo = set1(lo[a]), box_hi = set1(hi[a]);
+            const F t_near = mul(sub(select_by_sign(inv_d[a], box_lo, box_hi), o[a]), inv_d[a]);
+            const F t_far = mul(sub(select_by_sign(inv_d[a], box_hi, box_lo), o[a]), inv_d[a]);
+            t0 = max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
+            t1 = min(t_far, t1);
+        }
+        return le(t0, mul(t1, widen));
+    }
 };
 static_assert(BVH::FlatChunk % FlatLanes::Width == 0, "a chunk is whole registers of rays");
 #endif
@@ -528,15 +540,8 @@ void ShapeBoxes::entered(const RayColumns &r, int n, int *enters) const {
         const F tmin = L::load(r_tmin + k0), tmax = L::load(r_tmax + k0);
         typename L::I any = L::load(enters + k0);
         for (int i = 0; i < size(); ++i) {
-            F t0 = tmin, t1 = tmax;
-            for (int a = 0; a < 3; ++a) {
-                const F box_lo = L::set1(lo[a][i]), box_hi = L::set1(hi[a][i]);
-                const F t_near = L::mul(L::sub(L::select_by_sign(inv_d[a], box_lo, box_hi), o[a]), inv_d[a]);
-                const F t_far = L::mul(L::sub(L::select_by_sign(inv_d[a], box_hi, box_lo), o[a]), inv_d[a]);
-                t0 = L::max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
-                t1 = L::min(t_far, t1);
-            }
-            any = L::select(L::le(t0, L::mul(t1, widen)), any, L::set1(1u));
+            const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
+            any = L::select(L::enters(o, inv_d, box_lo, box_hi, tmin, tmax, widen), any, L::set1(1u));
         }
         L::store(reinterpret_cast<uint32_t *>(enters + k0), any);
     }
@@ -928,15 +933,9 @@ void BVH::child_masks(const RayColumns &r, int n, const float *limit, uint32_t c
         typename L::I bits = L::set1(0u);
         for (int u = 0; u < n_used; ++u) {
             const int c = used[u];
-            F t0 = tmin, t1 = t_end;
-            for (int a = 0; a < 3; ++a) {
-                const F lo = L::set1(node.lo[a][c]), hi = L::set1(node.hi[a][c]);
-                const F t_near = L::mul(L::sub(L::select_by_sign(inv_d[a], lo, hi), o[a]), inv_d[a]);
-                const F t_far = L::mul(L::sub(L::select_by_sign(inv_d[a], hi, lo), o[a]), inv_d[a]);
-                t0 = L::max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
-                t1 = L::min(t_far, t1);
-            }
-            bits = L::select(L::le(t0, L::mul(t1, widen)), bits, L::bit_or(bits, L::set1(uint32_t(1) << c)));
+            const float lo[3] = {node.lo[0][c], node.lo[1][c], node.lo[2][c]};
+            const float hi[3] = {node.hi[0][c], node.hi[1][c], node.hi[2][c]};
+            bits = L::select(L::enters(o, inv_d, lo, hi, tmin, t_end, widen), bits, L::bit_or(bits, L::set1(uint32_t(1) << c)));
         }
         L::store(reinterpret_cast<uint32_t *>(mask + k0), bits);
     }
@@ -1187,17 +1186,10 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         using L = FlatLanes;
         bool any = false;
         for (int k = k0; k < k0 + FlatChunk; k += L::Width) {
-            typename L::F t0 = L::load(q_tmin + k), t1 = L::min(L::load(q_best_t + k), L::load(q_tmax + k));
-            const float *o[3] = {q_rox, q_roy, q_roz}, *inv[3] = {q_ix, q_iy, q_iz};
-            for (int axis = 0; axis < 3; ++axis) {
-                const typename L::F inv_d = L::load(inv[axis] + k), origin = L::load(o[axis] + k);
-                const typename L::F lo = L::set1(box_lo[h][axis]), hi = L::set1(box_hi[h][axis]);
-                const typename L::F t_near = L::mul(L::sub(L::select_by_sign(inv_d, lo, hi), origin), inv_d);
-                const typename L::F t_far = L::mul(L::sub(L::select_by_sign(inv_d, hi, lo), origin), inv_d);
-                t0 = L::max(t_near, t0);  // (tn > t0 ? tn : t0, as enters_box())
-                t1 = L::min(t_far, t1);
-            }
-            any = any || L::any(L::le(t0, L::mul(t1, L::set1(1.0001f))));
+            const typename L::F t0 = L::load(q_tmin + k), t1 = L::min(L::load(q_best_t + k), L::load(q_tmax + k));
+            const typename L::F o[3] = {L::load(q_rox + k), L::load(q_roy + k), L::load(q_roz + k)};
+            const typename L::F inv_d[3] = {L::load(q_ix + k), L::load(q_iy + k), L::load(q_iz + k)};
+            any = any || L::any(L::enters(o, inv_d, box_lo[h], box_hi[h], t0, t1, L::set1(1.0001f)));
         }
         return any ? 1 : 0;
 #else
