@@ -544,25 +544,17 @@ void ShapeBoxes::entered(const RayColumns &r, int n, int *enters) const {
         }
         L::store(reinterpret_cast<uint32_t *>(enters + k0), any);
     }
-    // The rays past the last whole register.
-    for (int k = k0; k < n; ++k) {
-        const Vec3 o{r_ox[k], r_oy[k], r_oz[k]}, inv_d{1.f / r_dx[k], 1.f / r_dy[k], 1.f / r_dz[k]};
-        for (int i = 0; i < size(); ++i) {
-            const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
-            enters[k] |= enters_box(box_lo, box_hi, o, inv_d, r_tmin[k], r_tmax[k], 1.0001f);
-        }
-    }
-#else
-    // Each box against the rays in lanes (the vectoriser's).
+#endif
+    // Each box against the rays past the last whole register (without AVX2, all of them), in
+    // the vectoriser's lanes.
     for (int i = 0; i < size(); ++i) {
         const float box_lo[3] = {lo[0][i], lo[1][i], lo[2][i]}, box_hi[3] = {hi[0][i], hi[1][i], hi[2][i]};
-#pragma GCC ivdep  // without AVX2
+#pragma GCC ivdep
         for (int k = k0; k < n; ++k) {
             const Vec3 o{r_ox[k], r_oy[k], r_oz[k]}, inv_d{1.f / r_dx[k], 1.f / r_dy[k], 1.f / r_dz[k]};
             enters[k] |= enters_box(box_lo, box_hi, o, inv_d, r_tmin[k], r_tmax[k], 1.0001f);
         }
     }
-#endif
 }
 
 void BVH::build(const Geometry &geometry) {
@@ -910,7 +902,6 @@ bool BVH::intersect_others(const Ray &ray, const PrimPack &pack, float tmax, Hit
     return found;
 }
 
-
 /// For each ray, the mask of the root's children in `children` whose boxes it enters in
 /// (tmin, min(tmax, limit[k])): NodeTest's operations lane by lane (so the per-ray
 /// traversal's decision, for a finite origin).
@@ -938,7 +929,7 @@ void BVH::child_masks(const RayColumns &r, int n, const float *limit, uint32_t c
         const F inv_d[3] = {L::div(one, L::load(q_dx + k0)), L::div(one, L::load(q_dy + k0)),
                             L::div(one, L::load(q_dz + k0))};
         const F tmin = L::load(q_tmin + k0), tmax = L::load(q_tmax + k0), lim = L::load(limit + k0);
-        // (tmax < limit ? tmax : limit: L::min(lim, tmax).)
+        // (tmax < limit ? tmax : limit, as the loop below.)
         const F t_end = L::min(tmax, lim);
         typename L::I bits = L::set1(0u);
         for (int u = 0; u < n_used; ++u) {
@@ -949,24 +940,12 @@ void BVH::child_masks(const RayColumns &r, int n, const float *limit, uint32_t c
         }
         L::store(reinterpret_cast<uint32_t *>(mask + k0), bits);
     }
-    // The rays past the last whole register.
-    for (int k = k0; k < n; ++k) {
-        const Vec3 o{q_ox[k], q_oy[k], q_oz[k]}, inv_d{1.f / q_dx[k], 1.f / q_dy[k], 1.f / q_dz[k]};
-        const float tmax = q_tmax[k] < limit[k] ? q_tmax[k] : limit[k];
-        int m = 0;
-        for (int u = 0; u < n_used; ++u) {
-            const int c = used[u];
-            const float lo[3] = {node.lo[0][c], node.lo[1][c], node.lo[2][c]};
-            const float hi[3] = {node.hi[0][c], node.hi[1][c], node.hi[2][c]};
-            m |= enters_box(lo, hi, o, inv_d, q_tmin[k], tmax, BoxWiden) ? 1 << c : 0;
-        }
-        mask[k] = m;
-    }
-#else
-    // Each child against the rays in lanes (the vectoriser's).
+#endif
+    // Each child against the rays past the last whole register (without AVX2, all of them),
+    // in the vectoriser's lanes.
     alignas(64) float inv_x[MaxColumns], inv_y[MaxColumns], inv_z[MaxColumns], tmax[MaxColumns];
-#pragma GCC ivdep  // without AVX2
-    for (int k = 0; k < n; ++k) {
+#pragma GCC ivdep
+    for (int k = k0; k < n; ++k) {
         inv_x[k] = 1.f / q_dx[k], inv_y[k] = 1.f / q_dy[k], inv_z[k] = 1.f / q_dz[k];
         tmax[k] = q_tmax[k] < limit[k] ? q_tmax[k] : limit[k];
         mask[k] = 0;
@@ -976,13 +955,12 @@ void BVH::child_masks(const RayColumns &r, int n, const float *limit, uint32_t c
         const float lo[3] = {node.lo[0][c], node.lo[1][c], node.lo[2][c]};
         const float hi[3] = {node.hi[0][c], node.hi[1][c], node.hi[2][c]};
         const int bit = 1 << c;
-#pragma GCC ivdep  // without AVX2
-        for (int k = 0; k < n; ++k) {
+#pragma GCC ivdep
+        for (int k = k0; k < n; ++k) {
             const Vec3 o{q_ox[k], q_oy[k], q_oz[k]}, inv_d{inv_x[k], inv_y[k], inv_z[k]};
             mask[k] |= enters_box(lo, hi, o, inv_d, q_tmin[k], tmax[k], BoxWiden) ? bit : 0;
         }
     }
-#endif
 }
 
 void BVH::root_masks(const RayColumns &r, int n, int *mask) const { child_masks(r, n, r.tmax, ~0u, mask); }
@@ -1088,7 +1066,6 @@ RBPT_INLINE float t_error_bound(const float x[3], const float y[3], const float 
 }
 
 }  // namespace
-
 
 /// intersect_columns()'s rays: their intervals, the watertight test's constants (kx, ky, kz
 /// and the permuted origin and shear), and their nearest hits so far.

@@ -135,9 +135,13 @@ int main() {
         // The root's masks (BVH::root_masks: in AVX2 or AVX-512 intrinsics where the build has
         // them) and the shadow rays' test through them (the wavefront's, in trees of one node)
         // against occluded(), and the masks into the hash.
+        // (In batches of 250 rays, so that each ends with a part of a register: 10 lanes of
+        // AVX-512's 16, 2 of AVX2's 8, which the loops after the registers take.)
+        constexpr int Batch = 250;
+        static_assert(Batch <= BVH::MaxColumns && Batch % 16 == 10, "batches ending in part of a register");
         std::vector<int> mask(n);
-        for (int k0 = 0; k0 < n; k0 += BVH::MaxColumns) {
-            const int m = std::min(BVH::MaxColumns, n - k0);
+        for (int k0 = 0; k0 < n; k0 += Batch) {
+            const int m = std::min(Batch, n - k0);
             bvh.root_masks({&ox[k0], &oy[k0], &oz[k0], &dx[k0], &dy[k0], &dz[k0], &tmin[k0], &tmax[k0]}, m, &mask[k0]);
         }
         for (int k = 0; k < n; ++k) {
@@ -154,8 +158,8 @@ int main() {
         ShapeBoxes boxes;
         boxes.add(g, 0), boxes.add(g, 1);
         std::vector<int> enters(n);
-        for (int k0 = 0; k0 < n; k0 += BVH::MaxColumns) {
-            const int m = std::min(BVH::MaxColumns, n - k0);
+        for (int k0 = 0; k0 < n; k0 += Batch) {
+            const int m = std::min(Batch, n - k0);
             boxes.entered({&ox[k0], &oy[k0], &oz[k0], &dx[k0], &dy[k0], &dz[k0], &tmin[k0], &tmax[k0]}, m, &enters[k0]);
         }
         for (int k = 0; k < n; ++k) {
