@@ -472,9 +472,7 @@ def parse_args(argv=None):
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
     if not args.no_mitsuba:
-        why = mitsuba_ref.limit_embree(args.mitsuba_isa, args.cache, reexec=argv is None)
-        if why:
-            print(f"Mitsuba's Embree keeps its own instruction set: {why}")
+        mitsuba_ref.limit_embree(args.mitsuba_isa, args.cache, reexec=argv is None)
     use_mitsuba = False
     if args.no_mitsuba:
         print("Mitsuba: not run (--no-mitsuba); references are our own renders.")

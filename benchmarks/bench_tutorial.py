@@ -157,9 +157,7 @@ def main(argv=None) -> list:
 
     if not args.no_mitsuba:
         # (The workers, Mitsuba's included, inherit the preloaded library.)
-        why = mitsuba_ref.limit_embree(args.mitsuba_isa, HERE / "cache", reexec=argv is None)
-        if why:
-            print(f"Mitsuba's Embree keeps its own instruction set: {why}")
+        mitsuba_ref.limit_embree(args.mitsuba_isa, HERE / "cache", reexec=argv is None)
     cfg = dict(QUICK if args.quick else TUTORIAL, mitsuba_isa=args.mitsuba_isa)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -152,7 +152,14 @@ def limit_embree(isa: str, cache: Path, reexec: bool = True) -> str:
     max_isa=<isa> to the configuration Mitsuba creates its Embree device with. Call it first
     in a benchmark run from the command line, before Mitsuba is imported; with reexec False
     (a benchmark's main called from Python) it does not re-execute. Returns '' where the limit
-    holds (or isa is native), else why it does not."""
+    holds (or isa is native), else why it does not, which it also prints."""
+    why = _limit_embree(isa, cache, reexec)
+    if why:
+        print(f"Mitsuba's Embree keeps its own instruction set: {why}")
+    return why
+
+
+def _limit_embree(isa: str, cache: Path, reexec: bool) -> str:
     if isa == "native" or embree_limited():
         return ""
     if isa not in _EMBREE_MAX_ISA:
