@@ -175,3 +175,31 @@ def test07_tiles_splat_across_their_borders(rfilter):
         (g,) = torch.autograd.grad(out[py, px].sum(), [x], retain_graph=True)
         assert math.isclose(float((g * tangent).sum()), float(jvp[py, px].sum()), rel_tol=1e-9, abs_tol=1e-12), (py, px)
     scene.params[key] = x0
+
+
+@pytest.mark.parametrize("res", [(23, 19), (16, 16)])
+def test08_tent_splats_sum_as_the_dual_film_does(res):
+    # The primal film adds the tent's 2 x 2 splats on a path of its own (Film::add_2x2: a
+    # row's two pixels in one vector with AVX-512); the dual film of forward mode adds them in
+    # its general loop. With only emission seen directly (max_depth 1) of radiance 1,
+    # differentiated along a tangent of 1, every sample has L = dL/dt = 1, so the image and its
+    # derivative are the same weighted sums over the same weights: bitwise equal. The lights'
+    # edges (pixels between 0 and 1) show a splat with a column or row of weights swapped or
+    # misplaced; the film's edges and the pixels whose window is 1 wide take the general loop.
+    scene = tr.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 1},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": tr.Transform.look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res[0], "height": res[1], "rfilter": {"type": "tent"}}},
+        "light": {"type": "rectangle",
+                  "to_world": tr.Transform.translate([0.3, -0.2, 0]) @ tr.Transform.rotate([0, 0, 1], 20)
+                  @ tr.Transform.scale([0.7, 0.5, 1]),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1, 1, 1]}}},
+    })
+    key = "light.emitter.radiance.value"
+    image = tr.render(scene, spp=5, seed=3)
+    jvp = tr.render_forward(scene, {key: torch.ones(3)}, spp=5, seed=3)
+    edge = (image > 0.02) & (image < 0.98)
+    assert int(edge[..., 0].sum()) > 10
+    assert bool((image == 1).any()) and bool((image == 0).any())
+    assert torch.equal(image, jvp)
