@@ -466,9 +466,10 @@ private:
     /// of value L: wy_j (wx_i l, wx_i+1 l) added to each row's two PixelSums, l = (r, g, b, 1),
     /// with AVX-512 as one vector of eight doubles. The same sums as add()'s: wx wy and wx l
     /// are exact in double, so wy (wx l) rounds once, as (wx wy) l does. (l is built in
-    /// registers: read back from add()'s array, it waited for the array's stores.) Single
-    /// thread, 256 px, 16 spp, against add()'s loop: AVX-512 cbox 1-3%, cornell-box 2-5%,
-    /// glossy, textured and the bunny 1-2% faster; AVX2 about 1%.
+    /// registers: a first version read it from an array just stored, and that
+    /// store-forwarding stall took most of the gain.) Single thread, 256 px, 16 spp, against
+    /// add()'s loop: AVX-512 cbox 1-3%, cornell-box 2-5%, glossy, textured and the bunny 1-2%
+    /// faster; AVX2 about 1% (the unrolled sums: add()'s loop alone was 1% slower there).
     static void add_2x2(Block &block, const Window &win, const float *wx, const float *wy, size_t stride,
                         const RGB<float> &L) {
         const double wx0 = wx[size_t(win.i0 + win.b) * stride], wx1 = wx[size_t(win.i0 + 1 + win.b) * stride];
