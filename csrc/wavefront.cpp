@@ -1742,36 +1742,46 @@ int trace_reaching(Batch &b, int n, const ShapeBoxes &boxes, const BVH &bvh) {
 /// exactly, and end at the next vertex untraced, as if they had ended here. Images are those
 /// of the samples evaluated in the rough stages bit for bit.
 template <Microfacet Terms>
-void finish_deferred_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws) {
-    alignas(64) float ox[B], oy[B], oz[B], dx[B], dy[B], dz[B], tmin[B], tmax[B];
-    alignas(64) int enters[B], list[B];
-    const int count = r.count;
-    for (int j = 0; j < count; ++j) {
-        const int k = r.lanes[j];
-        ox[j] = b.ox[k], oy[j] = b.oy[k], oz[j] = b.oz[k], dx[j] = b.dx[k], dy[j] = b.dy[k], dz[j] = b.dz[k];
-        tmin[j] = b.tmin[k], tmax[j] = b.tmax[k];
-    }
-    ws.emitter_boxes.entered({ox, oy, oz, dx, dy, dz, tmin, tmax}, count, enters);
-    for (int j = 0; j < count; ++j) enters[j] = enters[j] != 0 && b.alive[r.lanes[j]] != 0 ? 1 : 0;
-    const int m = simd::select_indices(enters, count, 1, list);
-    const float *tables = ws.tables.data();
-    for (int i = 0; i < m; ++i) {
+void finish_deferred_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, const int *enters) {
+    // The lanes (their indices in r), and their inputs packed in that order.
+    alignas(64) int flag[B], list[B], mat[B];
+    for (int j = 0; j < r.count; ++j) flag[j] = enters[r.lanes[j]] != 0 && b.alive[r.lanes[j]] != 0 ? 1 : 0;
+    const int m = simd::select_indices(flag, r.count, 1, list);
+    if (m == 0) return;
+    const int padded = simd::pad_indices(list, m);
+    alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], wox[B], woy[B], woz[B];
+    for (int i = 0; i < padded; ++i) {
         const int j = list[i], k = r.lanes[j];
-        const WavefrontScene::Material &mat = ws.materials[size_t(r.mat[j])];
-        const float a[3] = {r.ar[j], r.ag[j], r.ab[j]}, s[3] = {r.tr[j], r.tg[j], r.tb[j]};
-        const Vec3 wi{r.wix[j], r.wiy[j], r.wiz[j]}, wo{b.swx[k], b.swy[k], b.swz[k]};
+        mat[i] = r.mat[j];
+        ar[i] = r.ar[j], ag[i] = r.ag[j], ab[i] = r.ab[j], tr[i] = r.tr[j], tg[i] = r.tg[j], tb[i] = r.tb[j];
+        wix[i] = r.wix[j], wiy[i] = r.wiy[j], wiz[i] = r.wiz[j];
+        wox[i] = b.swx[k], woy[i] = b.swy[k], woz[i] = b.swz[k];
+    }
+    // Their densities and weights, in lanes (rough_samples()').
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const float *tables = ws.tables.data();
+    alignas(64) float pdf[B], wr[B], wg[B], wb[B];
+#pragma GCC ivdep
+    for (int i = 0; i < padded; ++i) {
+        const WavefrontScene::Material &material = mats[mat[i]];
+        const float a[3] = {ar[i], ag[i], ab[i]}, s[3] = {tr[i], tg[i], tb[i]};
+        const Vec3 wi{wix[i], wiy[i], wiz[i]}, wo{wox[i], woy[i], woz[i]};
         MicrofacetTerms terms{};
-        if constexpr (Terms == Microfacet::StoredOnly) terms = beckmann_terms(mat.alpha, wi, wo);
-        const RoughEval e = rough_eval<Terms>(mat, terms, tables, wi, wo, a, s);
-        const float pdf = wi.z > 0.f ? e.pdf : 0.f;
-        const float wr = e.r / e.pdf, wg = e.g / e.pdf, wb = e.b / e.pdf;
-        const float rr_r = b.rr_r[k] * wr, rr_g = b.rr_g[k] * wg, rr_b = b.rr_b[k] * wb;
+        if constexpr (Terms == Microfacet::StoredOnly) terms = beckmann_terms(material.alpha, wi, wo);
+        const RoughEval e = rough_eval<Terms>(material, terms, tables, wi, wo, a, s);
+        pdf[i] = wi.z > 0.f ? e.pdf : 0.f;
+        wr[i] = e.r / e.pdf, wg[i] = e.g / e.pdf, wb[i] = e.b / e.pdf;
+    }
+    // What the vertex stage would have set with them.
+    for (int i = 0; i < m; ++i) {
+        const int k = r.lanes[list[i]];
+        const float rr_r = b.rr_r[k] * wr[i], rr_g = b.rr_g[k] * wg[i], rr_b = b.rr_b[k] * wb[i];
         const float beta_max = std::max(rr_r, std::max(rr_g, rr_b));
-        b.alive[k] = pdf > 0.f && beta_max > 0.f;
-        b.br[k] = b.br[k] * wr, b.bg[k] = b.bg[k] * wg, b.bb[k] = b.bb[k] * wb;
+        b.alive[k] = pdf[i] > 0.f && beta_max > 0.f;
+        b.br[k] = b.br[k] * wr[i], b.bg[k] = b.bg[k] * wg[i], b.bb[k] = b.bb[k] * wb[i];
         b.rr_r[k] = rr_r, b.rr_g[k] = rr_g, b.rr_b[k] = rr_b;
-        b.prev_pdf[k] = pdf;
-        b.rpdf[k] = pdf, b.rwr[k] = wr, b.rwg[k] = wg, b.rwb[k] = wb;
+        b.prev_pdf[k] = pdf[i];
+        b.rpdf[k] = pdf[i], b.rwr[k] = wr[i], b.rwg[k] = wg[i], b.rwb[k] = wb[i];
     }
 }
 
@@ -2140,8 +2150,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
             }
         }
-        if (defer && ggx.count > 0) finish_deferred_samples<Microfacet::GGX>(b, ggx, ws);
-        if (defer && beckmann.count > 0) finish_deferred_samples<Microfacet::StoredOnly>(b, beckmann, ws);
+        if (defer && ggx.count + beckmann.count > 0) {
+            alignas(64) int enters[B];
+            ws.emitter_boxes.entered(ray_columns(b), n, enters);
+            if (ggx.count > 0) finish_deferred_samples<Microfacet::GGX>(b, ggx, ws, enters);
+            if (beckmann.count > 0) finish_deferred_samples<Microfacet::StoredOnly>(b, beckmann, ws, enters);
+        }
         // The paths that ended hand back their radiance; the others move to the front, in
         // lanes (compact_lanes).
         alignas(64) int dead[B], ended[B];
