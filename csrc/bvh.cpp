@@ -1435,7 +1435,7 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
 
 /// The lanes' part of intersect_columns(): the nearest hits of rays[0, n) among the flat
 /// triangles and spheres into `hits`, and retrace[k] 1 where intersect() must decide.
-void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace) const {
+void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace, bool shadow) const {
     // Each ray's constants of the watertight test (RayPrecomp, RayPrecompPack), and whether
     // it must be traced by intersect() (`retrace`: 1 or 0).
     alignas(64) int kx[MaxColumns], ky[MaxColumns], kz[MaxColumns];
@@ -1487,7 +1487,11 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double, for those rays in lanes). Its margin
     // grows with the origin's distance |oc| <= |oc|_1 (no square root), and 1 / |d|^2 is
-    // taken once per ray: neither a division nor a square root per sphere.
+    // taken once per ray: neither a division nor a square root per sphere. In occlusion
+    // queries (`shadow`), the rays whose interval ends before a snug sphere around it or
+    // starts past it cannot hit it either (a shadow ray aimed at the sphere, which stops
+    // short of it: veach-mis's lights); the snug sphere's margin, 1e-4 (r + |oc|_1), is
+    // over ten times the float rounding of the test's distances.
     alignas(64) float sphere_t[MaxColumns], sphere_hit[MaxColumns], inv_dd[MaxColumns];
     alignas(64) int near[MaxColumns], near_list[MaxColumns];
     if (!flat_spheres_.empty()) {
@@ -1498,15 +1502,30 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
         const Shape &s = geometry_->analytic_shape(prim);
         const Vec3 c = s.center;
         const float radius = s.radius;
+        auto near_rays = [&](auto cull) {
 #pragma GCC ivdep
-        for (int k = 0; k < n; ++k) {
-            Vec3 oc{r.ox[k] - c.x, r.oy[k] - c.y, r.oz[k] - c.z};
-            Vec3 d{r.dx[k], r.dy[k], r.dz[k]};
-            float along = dot(oc, d) * inv_dd[k];
-            Vec3 closest = oc - d * along;
-            float reach = radius + 1e-3f * (radius + (std::abs(oc.x) + std::abs(oc.y) + std::abs(oc.z)));
-            near[k] = squared_norm(closest) > reach * reach ? 0 : 1;
-        }
+            for (int k = 0; k < n; ++k) {
+                Vec3 oc{r.ox[k] - c.x, r.oy[k] - c.y, r.oz[k] - c.z};
+                Vec3 d{r.dx[k], r.dy[k], r.dz[k]};
+                float along = dot(oc, d) * inv_dd[k];
+                Vec3 closest = oc - d * along;
+                float size = radius + (std::abs(oc.x) + std::abs(oc.y) + std::abs(oc.z));
+                float reach = radius + 1e-3f * size, dist2 = squared_norm(closest);
+                near[k] = dist2 > reach * reach ? 0 : 1;
+                if constexpr (decltype(cull)::value) {
+                    // (The line passes closest to the centre at t = -along; half2: the snug
+                    // sphere's half chord there, squared, in t.)
+                    float snug = radius + 1e-4f * size;
+                    float half2 = (snug * snug - dist2) * inv_dd[k];
+                    float before = -along - std::min(r.tmax[k], best_t[k]), past = r.tmin[k] + along;
+                    float clear = before > 0.f && before * before > half2 ? 1.f : 0.f;
+                    clear = past > 0.f && past * past > half2 ? 1.f : clear;
+                    near[k] = clear != 0.f ? 0 : near[k];
+                }
+            }
+        };
+        if (shadow) near_rays(std::true_type{});
+        else near_rays(std::false_type{});
         // The near rays listed, tested in lanes (the list padded to whole vectors), their
         // hits kept in order.
         const int m = simd::select_indices(near, n, 1, near_list);
@@ -1527,6 +1546,10 @@ void BVH::flat_columns(const RayColumns &r, int n, const HitColumns &hits, float
 }
 
 void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) const {
+    nearest_columns(r, n, hits, false);
+}
+
+void BVH::nearest_columns(const RayColumns &r, int n, const HitColumns &hits, bool shadow) const {
     auto trace = [&](int k) {
         Hit hit;
         intersect(r.ray(k), &hit);
@@ -1537,7 +1560,7 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
         return;
     }
     alignas(64) float retrace[MaxColumns];
-    flat_columns(r, n, hits, retrace);
+    flat_columns(r, n, hits, retrace, shadow);
     if (two_phase_) {
         // The rest of the tree, beyond the root's leaves, for the rays that enter one of its
         // inner children's boxes before their nearest hit so far.
@@ -1570,7 +1593,7 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
         alignas(64) float t[MaxColumns], u[MaxColumns], v[MaxColumns], retrace[MaxColumns];
         alignas(64) uint32_t prim[MaxColumns];
         alignas(64) int enters[MaxColumns];
-        flat_columns(r, n, {t, u, v, prim}, retrace);
+        flat_columns(r, n, {t, u, v, prim}, retrace, true);
         enters_inner(r, n, r.tmax, enters);
         // Blocked by a root leaf in lanes; the rays to retrace, or that enter an inner child
         // unblocked, listed and traced.
@@ -1592,7 +1615,7 @@ void BVH::occluded_columns(const RayColumns &r, int n, int *blocked) const {
     if (flat()) {
         alignas(64) float t[MaxColumns], u[MaxColumns], v[MaxColumns];
         alignas(64) uint32_t prim[MaxColumns];
-        intersect_columns(r, n, {t, u, v, prim});
+        nearest_columns(r, n, {t, u, v, prim}, true);
         for (int k = 0; k < n; ++k) blocked[k] = prim[k] != ~0u;
         return;
     }

@@ -179,7 +179,11 @@ private:
     bool occluded_two_phase(const Ray &ray) const;
     /// The nearest hits of rays[0, n) among the flat triangles and spheres, in lanes, and
     /// retrace[k] 1 where intersect() must decide (intersect_columns()'s first part).
-    void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace) const;
+    /// With `shadow` (occlusion queries), a sphere is left out for the rays whose interval
+    /// ends before it or starts past it (a shadow ray aimed at it).
+    void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace, bool shadow = false) const;
+    /// intersect_columns(), for occluded_columns() with `shadow`.
+    void nearest_columns(const RayColumns &r, int n, const HitColumns &hits, bool shadow) const;
     /// enters[k] nonzero where ray k enters one of the root's inner children's boxes before
     /// min(its tmax, limit[k]) (the mask of those children), else 0: child_masks().
     void enters_inner(const RayColumns &r, int n, const float *limit, int *enters) const;
