@@ -181,7 +181,7 @@ private:
     /// retrace[k] 1 where intersect() must decide (intersect_columns()'s first part).
     /// With `shadow` (occlusion queries), a sphere is left out for the rays whose interval
     /// ends before it or starts past it (a shadow ray aimed at it).
-    void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace, bool shadow = false) const;
+    void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace, bool shadow) const;
     /// intersect_columns(), for occluded_columns() with `shadow`.
     void nearest_columns(const RayColumns &r, int n, const HitColumns &hits, bool shadow) const;
     /// enters[k] nonzero where ray k enters one of the root's inner children's boxes before

@@ -466,6 +466,15 @@ RBPT_INLINE float specular_probability(const WavefrontScene::Material &m, float 
 struct RoughEval {
     float r, g, b, pdf;
 };
+/// A rough BSDF sample's density (zero where wi is below the surface) and its weight value /
+/// density, from the BSDF's evaluation towards it: rough_samples()' and, for the samples it
+/// leaves unevaluated, finish_deferred_samples()', which must agree bit for bit.
+struct RoughWeight {
+    float pdf, r, g, b;
+};
+RBPT_INLINE RoughWeight sample_weight(const RoughEval &e, float wi_z) {
+    return {wi_z > 0.f ? e.pdf : 0.f, e.r / e.pdf, e.g / e.pdf, e.b / e.pdf};
+}
 /// A Beckmann lane's microfacet terms towards wo: D(h) and G1 of wi and of wo.
 struct MicrofacetTerms {
     float D, g_i, g;
@@ -1051,9 +1060,8 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
         if constexpr (Defer) {
             pdf[j] = 1.f, wr[j] = wg[j] = wb[j] = 1.f;
         } else {
-            const RoughEval e = rough_eval<Terms>(m, terms, tables, wi, wo, a, s);
-            pdf[j] = wi.z > 0.f ? e.pdf : 0.f;
-            wr[j] = e.r / e.pdf, wg[j] = e.g / e.pdf, wb[j] = e.b / e.pdf;
+            const RoughWeight w = sample_weight(rough_eval<Terms>(m, terms, tables, wi, wo, a, s), wi.z);
+            pdf[j] = w.pdf, wr[j] = w.r, wg[j] = w.g, wb[j] = w.b;
         }
     }
     for (int j = 0; j < r.count; ++j) {
@@ -1768,9 +1776,8 @@ void finish_deferred_samples(Batch &b, const RoughLanes &r, const WavefrontScene
         const Vec3 wi{wix[i], wiy[i], wiz[i]}, wo{wox[i], woy[i], woz[i]};
         MicrofacetTerms terms{};
         if constexpr (Terms == Microfacet::StoredOnly) terms = beckmann_terms(material.alpha, wi, wo);
-        const RoughEval e = rough_eval<Terms>(material, terms, tables, wi, wo, a, s);
-        pdf[i] = wi.z > 0.f ? e.pdf : 0.f;
-        wr[i] = e.r / e.pdf, wg[i] = e.g / e.pdf, wb[i] = e.b / e.pdf;
+        const RoughWeight w = sample_weight(rough_eval<Terms>(material, terms, tables, wi, wo, a, s), wi.z);
+        pdf[i] = w.pdf, wr[i] = w.r, wg[i] = w.g, wb[i] = w.b;
     }
     // What the vertex stage would have set with them.
     for (int i = 0; i < m; ++i) {
@@ -1781,7 +1788,6 @@ void finish_deferred_samples(Batch &b, const RoughLanes &r, const WavefrontScene
         b.br[k] = b.br[k] * wr[i], b.bg[k] = b.bg[k] * wg[i], b.bb[k] = b.bb[k] * wb[i];
         b.rr_r[k] = rr_r, b.rr_g[k] = rr_g, b.rr_b[k] = rr_b;
         b.prev_pdf[k] = pdf[i];
-        b.rpdf[k] = pdf[i], b.rwr[k] = wr[i], b.rwg[k] = wg[i], b.rwb[k] = wb[i];
     }
 }
 
