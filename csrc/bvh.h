@@ -178,7 +178,8 @@ private:
     bool intersect_two_phase(const Ray &ray, Hit *hit) const;
     bool occluded_two_phase(const Ray &ray) const;
     /// The nearest hits of rays[0, n) among the flat triangles and spheres, in lanes, and
-    /// retrace[k] 1 where intersect() must decide (intersect_columns()'s first part).
+    /// retrace[k] 1 where intersect() must decide (intersect_columns()'s first part);
+    /// `retrace` holds n rounded up to whole chunks of FlatChunk (the lanes fill up the last).
     /// With `shadow` (occlusion queries), a sphere is left out for the rays whose interval
     /// ends before it or starts past it (a shadow ray aimed at it).
     void flat_columns(const RayColumns &r, int n, const HitColumns &hits, float *retrace, bool shadow) const;
