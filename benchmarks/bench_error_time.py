@@ -29,8 +29,9 @@ error. Before the sweep at each spp,
     different seed, so the JIT kernels are traced and compiled; with drjit's kernel
     history on, a timed render that still compiled a kernel is discarded and re-run (at
     most twice). Each timed Mitsuba render ends with dr.sync_thread().
-Renders that exceed 2^22 samples go through mitsuba_ref's passes (equal-spp passes,
-averaged), for references and sweep alike. The errors at each spp are the mean over the
+Renders that exceed 2^22 samples go through mitsuba_ref's passes (equal-spp passes whose
+film sums are added up and divided once, as one render of all their samples), for
+references and sweep alike. The errors at each spp are the mean over the
 2 x --repeats images (each with its own seed).
 
 Writes benchmarks/results/error_time.csv, one PNG per scene (error_time_<scene>.png) and
@@ -210,7 +211,9 @@ def mitsuba_pass_spp(size: tuple[int, int], spp: int) -> int:
 def reference(name: str, path: Path, size: tuple[int, int], ref_spp: int, use_mitsuba: bool,
               cache: Path) -> tuple[torch.Tensor, str]:
     who = "mitsuba" if use_mitsuba else "ours"
-    file = cache / f"{name}_{size[0]}x{size[1]}_{ref_spp}spp_{who}.exr"
+    # ("sums": made as one film taking all its samples; the references cached before session
+    # 49 averaged the normalised images of 64 spp passes, see mitsuba_ref.render.)
+    file = cache / f"{name}_{size[0]}x{size[1]}_{ref_spp}spp_{who}_sums.exr"
     if file.exists():
         return tr.read_image(file), file.name
     print(f"  rendering the reference: {ref_spp} spp with {'Mitsuba' if use_mitsuba else 'torch_rbpt'} ...", flush=True)
@@ -219,14 +222,9 @@ def reference(name: str, path: Path, size: tuple[int, int], ref_spp: int, use_mi
         mscene = mitsuba_ref.load_scene(path, width=size[0], height=size[1])
         img = torch.from_numpy(mitsuba_ref.render(mscene, ref_spp, seed=REF_SEED))
     else:
-        scene = load_ours(path, size)
-        # in chunks of at most 256 spp (memory is per pixel anyway; keeps progress visible)
-        acc, done, k = torch.zeros(size[1], size[0], 3, dtype=torch.float64), 0, 0
-        while done < ref_spp:
-            n = min(256, ref_spp - done)
-            acc += render_ours(scene, n, REF_SEED + k)[0].double() * n
-            done, k = done + n, k + 1
-        img = (acc / ref_spp).float()
+        # One render of all the samples (our film's memory is per pixel), not an average of
+        # shorter renders' normalised images, which would keep their ratio bias.
+        img = render_ours(load_ours(path, size), ref_spp, REF_SEED)[0].float()
     cache.mkdir(parents=True, exist_ok=True)
     tr.write_image(file, img)
     print(f"  reference done in {time.perf_counter() - t0:.1f} s -> {file}", flush=True)

@@ -1,10 +1,12 @@
-"""The benchmarks run in their smoke settings (ours only, no Mitsuba needed)."""
+"""The benchmarks run in their smoke settings (ours only, no Mitsuba needed; test08 checks
+mitsuba_ref where Mitsuba is installed)."""
 import csv
 import math
 import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import ROOT, SHARED, load_benchmark, uninstrumented_env
@@ -26,10 +28,10 @@ def test01_error_time_quick(tmp_path):
             v = float(r[key])
             assert math.isfinite(v) and v > 0, (key, r[key])
         assert r["cpu"] and int(r["cores"]) >= 1 and r["date"]
-        assert r["reference"] == "cbox_64x64_256spp_ours.exr"
+        assert r["reference"] == "cbox_64x64_256spp_ours_sums.exr"
     # 4x the samples: the error drops (by about 2x)
     assert float(rows[1]["rmse"]) < 0.8 * float(rows[0]["rmse"])
-    assert (tmp_path / "cache" / "cbox_64x64_256spp_ours.exr").exists()
+    assert (tmp_path / "cache" / "cbox_64x64_256spp_ours_sums.exr").exists()
     assert (tmp_path / "results" / "error_time_cbox.png").exists()
     assert (tmp_path / "results" / "error_time.png").exists()
 
@@ -155,3 +157,32 @@ def test07_embree_limit_appends_max_isa(tmp_path):
     # Without the stand-in's path it stops with a message rather than running unlimited.
     run = subprocess.run([str(tmp_path / "main")], capture_output=True, text=True, env=dict(env, RBPT_EMBREE_LIB=""))
     assert run.returncode != 0 and "no mitsuba::rtcNewDevice" in run.stderr
+
+
+def test08_mitsuba_passes_make_one_film(monkeypatch):
+    # A Mitsuba render split into passes adds up the passes' film sums (weights times values,
+    # and weights) and divides once, as one film taking all the samples would; averaging the
+    # passes' normalised images instead keeps each pass's ratio estimate.
+    mitsuba_ref = load_benchmark("mitsuba_ref")
+    if not mitsuba_ref.available():
+        pytest.skip("Mitsuba 3 not installed")
+    import mitsuba as mi
+    scene = mitsuba_ref.load_scene(SHARED / "cbox" / "cbox.xml", width=24, height=16)
+    monkeypatch.setattr(mitsuba_ref, "MAX_SAMPLES_PER_PASS", 24 * 16 * 4)
+    img = mitsuba_ref.render(scene, 12, seed=3)  # three passes of 4 spp
+    sensor = scene.sensors()[0]
+    sums, averaged = 0.0, 0.0
+    for i in range(3):
+        seed = mitsuba_ref._pass_seed(3, i)
+        scene.integrator().render(scene, sensor, seed=seed, spp=4, develop=False)
+        sums = sums + np.array(sensor.film().bitmap(raw=True), dtype=np.float64)
+        averaged = averaged + np.asarray(mi.render(scene, spp=4, seed=seed), dtype=np.float64)[..., :3] / 3
+    assert img.shape == (16, 24, 3) and img.dtype == np.float32
+    assert (sums[..., -1] > 0).all()
+    np.testing.assert_allclose(img, sums[..., :3] / sums[..., -1:], rtol=1e-6, atol=1e-7)
+    # (The tent filter's weights differ from pass to pass: the two ways differ.)
+    assert np.abs(img - averaged).max() > 1e-4
+    # One pass is mi.render's own image.
+    monkeypatch.setattr(mitsuba_ref, "MAX_SAMPLES_PER_PASS", 1 << 22)
+    one = mitsuba_ref.render(scene, 4, seed=3)
+    np.testing.assert_array_equal(one, np.asarray(mi.render(scene, spp=4, seed=3))[..., :3])
