@@ -321,7 +321,8 @@ def render(scene, spp, seed=0):
     npass = spp // per_pass
     if npass == 1:
         img = np.asarray(mi.render(scene, spp=spp, seed=_pass_seed(seed, 0)), dtype=np.float32)
-        return img[..., :3] if img.ndim == 3 else np.repeat(img[..., None], 3, axis=2)
+        img = img if img.ndim == 3 else img[..., None]
+        return img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, axis=2)
     sums = weights = None
     for i in range(npass):
         scene.integrator().render(scene, sensor, seed=_pass_seed(seed, i), spp=per_pass, develop=False)

@@ -159,6 +159,7 @@ def test07_embree_limit_appends_max_isa(tmp_path):
     assert run.returncode != 0 and "no mitsuba::rtcNewDevice" in run.stderr
 
 
+@pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
 def test08_mitsuba_passes_make_one_film(monkeypatch):
     # A Mitsuba render split into passes adds up the passes' film sums (weights times values,
     # and weights) and divides once, as one film taking all the samples would; averaging the
@@ -179,10 +180,12 @@ def test08_mitsuba_passes_make_one_film(monkeypatch):
         averaged = averaged + np.asarray(mi.render(scene, spp=4, seed=seed), dtype=np.float64)[..., :3] / 3
     assert img.shape == (16, 24, 3) and img.dtype == np.float32
     assert (sums[..., -1] > 0).all()
-    np.testing.assert_allclose(img, sums[..., :3] / sums[..., -1:], rtol=1e-6, atol=1e-7)
+    # (Mitsuba's film adds its splats atomically, in an order that varies from render to
+    # render: the same seed's images agree to a few units in the last place.)
+    np.testing.assert_allclose(img, sums[..., :3] / sums[..., -1:], rtol=1e-5, atol=1e-6)
     # (The tent filter's weights differ from pass to pass: the two ways differ.)
     assert np.abs(img - averaged).max() > 1e-4
     # One pass is mi.render's own image.
     monkeypatch.setattr(mitsuba_ref, "MAX_SAMPLES_PER_PASS", 1 << 22)
     one = mitsuba_ref.render(scene, 4, seed=3)
-    np.testing.assert_array_equal(one, np.asarray(mi.render(scene, spp=4, seed=3))[..., :3])
+    np.testing.assert_allclose(one, np.asarray(mi.render(scene, spp=4, seed=3))[..., :3], rtol=1e-5, atol=1e-6)
