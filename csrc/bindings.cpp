@@ -976,6 +976,7 @@ PYBIND11_MODULE(_C, m) {
         .def_property_readonly("bvh_node_count", [](const Scene &s) { return s.bvh.node_count(); })
         .def_property_readonly("bvh_flat", [](const Scene &s) { return s.bvh.flat(); })
         .def_property_readonly("bvh_two_phase", [](const Scene &s) { return s.bvh.two_phase(); })
+        .def_property_readonly("bvh_quad_count", [](const Scene &s) { return s.bvh.quad_count(); })
         .def_property_readonly("bvh_sah_cost", [](const Scene &s) { return s.bvh.sah_cost(); })
         .def_property_readonly("shadow_primitive_count", [](const Scene &s) { return s.shadow_primitives; })
         .def("build_shadow_tree", [](Scene &s, bool cull) {

@@ -25,12 +25,19 @@
 // nearest first, the others pushed farthest first; entries farther than the nearest hit so far
 // are skipped when popped; the hit children are prefetched, as traversal waits on memory.
 // Any-hit (shadow) queries do not order children and return at the first hit.
+//
+// Quads: in a flat tree (or a two-phase tree's root leaves), a pair of triangles of
+// flat_columns()' passes that make a parallelogram is a FlatQuad, whose closest-hit test
+// (quad_test()) is the same in the lanes' passes and in the packs (one lane of each pack
+// holding a half runs it; the halves' lanes leave the packs' triangle test). Occlusion
+// queries test the triangles.
 
 #include "bvh.h"
 
 #include <immintrin.h>
 
 #include <algorithm>
+#include <array>
 #include <stdexcept>
 
 namespace rbpt {
@@ -403,6 +410,108 @@ std::vector<uint32_t> shadow_blockers(const Geometry &geometry, const std::vecto
     return blockers;
 }
 
+/// One ray as quad_test() takes rays: FlatLanes' operations on floats (the same results).
+struct ScalarLanes {
+    using F = float;
+    using I = uint32_t;
+    using M = bool;
+    static F set1(float x) { return x; }
+    static I set1(uint32_t x) { return x; }
+    static F add(F a, F b) { return a + b; }
+    static F sub(F a, F b) { return a - b; }
+    static F mul(F a, F b) { return a * b; }
+    static F div(F a, F b) { return a / b; }
+    static F min(F a, F b) { return a < b ? a : b; }
+    static F abs(F a) { return std::abs(a); }
+    static M lt(F a, F b) { return a < b; }
+    static M le(F a, F b) { return a <= b; }
+    static M gt(F a, F b) { return a > b; }
+    static M ge(F a, F b) { return a >= b; }
+    static M both(M a, M b) { return a && b; }
+    /// m ? b : a.
+    static F select(M m, F a, F b) { return m ? b : a; }
+};
+
+/// Most a quad's tests widen it by (QuadMargin of an edge, in s and r): less than
+/// skip_margin() widens its pair's box in a flat pass, so that a chunk of rays none of which
+/// enters that box cannot hit the widened quad (build_quads() widens the leaves' boxes
+/// likewise).
+constexpr float QuadMargin = 1e-5f;
+
+/// A ray's (or a register of rays') values for quad_test(), the same for every quad: origin,
+/// direction, interval start, and the rounding terms of its magnitudes (|d|_1, gamma(5)
+/// |o|_1, gamma(3) |d|_1, gamma(5) |d|_1).
+template <class L>
+struct QuadRay {
+    using F = typename L::F;
+    F o[3], d[3], tmin, ad, ao5, ad3, ad5;
+    QuadRay() = default;
+    QuadRay(F ox, F oy, F oz, F dx, F dy, F dz, F t0) : o{ox, oy, oz}, d{dx, dy, dz}, tmin(t0) {
+        ad = L::add(L::add(L::abs(dx), L::abs(dy)), L::abs(dz));
+        ao5 = L::mul(L::set1(gamma(5)), L::add(L::add(L::abs(ox), L::abs(oy)), L::abs(oz)));
+        ad3 = L::mul(L::set1(gamma(3)), ad);
+        ad5 = L::mul(L::set1(gamma(5)), ad);
+    }
+};
+
+template <class L>
+struct QuadHit {
+    typename L::M hit, second;  ///< a hit; in the quad's second triangle
+    typename L::F t, u, v;      ///< its distance, and the triangle's barycentrics
+};
+
+/// A ray against a FlatQuad, in lanes of L (FlatLanes) or for one ray (ScalarLanes), the
+/// same operations in the same order: the plane's distance t = -((o - a) . n) / (d . n), the
+/// point h = (o - a) + t d, its coordinates s = h . q1 and r = h . q2. Rounding, bounded as
+/// pbrt bounds its shapes' (gamma(k) for k operations; n is a unit vector):
+/// - t's error is at most t_err = ((gamma(5) (|o|_1 + |a|_1) + plane) + |t| gamma(3) |d|_1)
+///   / |d . n| + gamma(2) |t|, with `plane` the vertices' largest distance from the plane
+///   (FlatQuad::pt). A ray leaving the quad (its origin offset off a surface point, which
+///   lies on the plane within `plane`) would meet it at t <= t_err: a hit must lie beyond
+///   2 t_err (the triangles' test keeps t beyond its own error bound likewise).
+/// - s's and r's errors are at most |q|_1 (gamma(5) (|o|_1 + |a|_1 + |t| |d|_1) + t_err
+///   |d|_1), plus the vertices' offsets from the corners (FlatQuad::st): the quad is widened
+///   by twice that (capped at QuadMargin), so that a ray meeting an edge it shares with
+///   another quad, or a triangle's edge, hits one of them (the triangles' watertightness,
+///   kept up to rays whose widening reaches the cap: an origin some 10^4 edges away).
+template <class L>
+RBPT_INLINE QuadHit<L> quad_test(const FlatQuad &q, const QuadRay<L> &r) {
+    using F = typename L::F;
+    using M = typename L::M;
+    const F zero = L::set1(0.f), one = L::set1(1.f);
+    auto dot = [](const F x[3], const float c[3]) __attribute__((always_inline)) {
+        return L::add(L::add(L::mul(x[0], L::set1(c[0])), L::mul(x[1], L::set1(c[1]))), L::mul(x[2], L::set1(c[2])));
+    };
+    const F w[3] = {L::sub(r.o[0], L::set1(q.a[0])), L::sub(r.o[1], L::set1(q.a[1])), L::sub(r.o[2], L::set1(q.a[2]))};
+    const F inv_dn = L::div(one, dot(r.d, q.n));
+    const F t = L::mul(L::sub(zero, dot(w, q.n)), inv_dn);
+    const F h[3] = {L::add(w[0], L::mul(t, r.d[0])), L::add(w[1], L::mul(t, r.d[1])), L::add(w[2], L::mul(t, r.d[2]))};
+    const F s = dot(h, q.q1), rr = dot(h, q.q2);
+    // The bounds on t's error and on s's and r's.
+    const F at = L::abs(t);
+    const F t_err = L::add(L::mul(L::add(L::add(r.ao5, L::set1(q.pt)), L::mul(at, r.ad3)), L::abs(inv_dn)),
+                           L::mul(L::set1(gamma(2)), at));
+    const F st_err = L::add(L::add(r.ao5, L::set1(q.pa)), L::add(L::mul(at, r.ad5), L::mul(t_err, r.ad)));
+    const F widen = L::min(L::add(L::set1(q.st), L::mul(L::set1(q.qn), st_err)), L::set1(QuadMargin));
+    const F lo = L::sub(zero, widen), hi = L::add(one, widen);
+    M hit = L::both(L::both(L::ge(s, lo), L::le(s, hi)), L::both(L::ge(rr, lo), L::le(rr, hi)));
+    hit = L::both(hit, L::both(L::gt(t, r.tmin), L::gt(t, L::add(t_err, t_err))));
+    // The triangle, and its barycentrics (c0 + cs s + cr r).
+    const M second = L::gt(L::add(s, rr), one);
+    auto weight = [&](int k) __attribute__((always_inline)) {
+        const F c0 = L::select(second, L::set1(q.c[0][k]), L::set1(q.c[1][k]));
+        const F cs = L::select(second, L::set1(q.c[0][k + 1]), L::set1(q.c[1][k + 1]));
+        const F cr = L::select(second, L::set1(q.c[0][k + 2]), L::set1(q.c[1][k + 2]));
+        return L::add(c0, L::add(L::mul(cs, s), L::mul(cr, rr)));
+    };
+    return {hit, second, t, weight(0), weight(3)};
+}
+
+// (GCC 12 takes the unset pass-through operand of AVX-512 intrinsics, _mm512_undefined_ps(),
+// for an uninitialised variable in some of the functions below, depending on how far it
+// inlines them: GCC bug 105593, fixed in GCC 13. Until the end of the file.)
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+
 #if defined(__AVX2__)
 /// A register of rays (flat_triangles()' chunk tests, child_masks() and ShapeBoxes::entered()
 /// in intrinsics): with AVX-512, sixteen lanes and comparisons as bit masks; with AVX2, eight
@@ -713,6 +822,126 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
         flat_prims_.resize(n);
         for (size_t i = 0; i < n; ++i) flat_prims_[i] = flat_triangles_[i].prim;
     }
+    build_quads();
+}
+
+void BVH::build_quads() {
+    flat_quads_.clear();
+    flat_half_quad_.assign(flat_triangles_.size() / 2, -1);
+    // (The pairs of flat_columns()' passes of four: the last triangles, fewer than four, are
+    // tested one by one.)
+    const size_t halves = flat_triangles_.size() / 4 * 2;
+    using D3 = std::array<double, 3>;
+    auto sub = [](const D3 &a, const D3 &b) { return D3{a[0] - b[0], a[1] - b[1], a[2] - b[2]}; };
+    auto cross = [](const D3 &a, const D3 &b) {
+        return D3{a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]};
+    };
+    auto dot = [](const D3 &a, const D3 &b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; };
+    auto dot_f = [](const D3 &a, const float b[3]) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; };
+    auto norm1 = [](const float a[3]) { return std::abs(a[0]) + std::abs(a[1]) + std::abs(a[2]); };
+    for (size_t h = 0; h < halves; ++h) {
+        const FlatTriangle &t0 = flat_triangles_[2 * h], &t1 = flat_triangles_[2 * h + 1];
+        auto vertex = [](const FlatTriangle &t, int j) { return D3{t.v[j][0], t.v[j][1], t.v[j][2]}; };
+        // The two vertices they share (the diagonal), bit for bit: j0[k] of t0 is j1[k] of t1.
+        int j0[3], j1[3], shared = 0;
+        for (int j = 0; j < 3; ++j)
+            for (int l = 0; l < 3; ++l)
+                if (shared < 3 && vertex(t0, j) == vertex(t1, l)) j0[shared] = j, j1[shared] = l, ++shared;
+        if (shared != 2) continue;
+        const int ja = 3 - j0[0] - j0[1], jb = 3 - j1[0] - j1[1];
+        const D3 a = vertex(t0, ja), p = vertex(t0, j0[0]), c = vertex(t0, j0[1]), b = vertex(t1, jb);
+        // The plane and the dual basis of the edges from a, in double, kept as floats.
+        const D3 e1 = sub(p, a), e2 = sub(c, a), n = cross(e1, e2);
+        const double nn = dot(n, n);
+        if (!(nn > 0.0) || !std::isfinite(nn)) continue;
+        const D3 q1 = cross(e2, n), q2 = cross(n, e1);
+        FlatQuad q;
+        for (int i = 0; i < 3; ++i) {
+            q.a[i] = float(a[i]);
+            q.n[i] = float(n[i] / std::sqrt(nn));
+            q.q1[i] = float(q1[i] / nn);
+            q.q2[i] = float(q2[i] / nn);
+        }
+        // The vertices' distances from the plane and offsets from their corners (s, r), as
+        // the float plane and basis place them: a parallelogram's are roundings.
+        double plane = 0.0, corner = 0.0, size = std::sqrt(dot(e1, e1)) + std::sqrt(dot(e2, e2));
+        const D3 vertices[4] = {a, p, c, b};
+        const double corners[4][2] = {{0, 0}, {1, 0}, {0, 1}, {1, 1}};
+        for (int i = 0; i < 4; ++i) {
+            const D3 x = sub(vertices[i], a);
+            plane = std::max(plane, std::abs(dot_f(x, q.n)));
+            corner = std::max({corner, std::abs(dot_f(x, q.q1) - corners[i][0]), std::abs(dot_f(x, q.q2) - corners[i][1])});
+        }
+        if (!(plane <= 1e-6 * size) || !(corner <= 1e-6)) continue;  // (not a parallelogram)
+        // The bounds' terms, rounded up.
+        q.pa = gamma(5) * norm1(q.a) * (1.f + 1e-5f);
+        q.pt = float((q.pa + plane) * (1.0 + 1e-5));
+        q.st = float(2.0 * corner * (1.0 + 1e-5));
+        q.qn = 2.f * std::max(norm1(q.q1), norm1(q.q2)) * (1.f + 1e-5f);
+        // Each triangle's barycentrics u and v, the weights of its vertices 1 and 2, in (s, r):
+        // a + s e1 + r e2 = a (1 - s - r) + p s + c r = b (s + r - 1) + p (1 - r) + c (1 - s).
+        const float first[3][3] = {{1, -1, -1}, {0, 1, 0}, {0, 0, 1}};    // a, p, c
+        const float second[3][3] = {{-1, 1, 1}, {1, 0, -1}, {1, -1, 0}};  // b, p, c
+        for (int slot = 1; slot <= 2; ++slot) {
+            const int i0 = slot == ja ? 0 : (slot == j0[0] ? 1 : 2);
+            const int i1 = slot == jb ? 0 : (slot == j1[0] ? 1 : 2);
+            for (int k = 0; k < 3; ++k) {
+                q.c[0][3 * (slot - 1) + k] = first[i0][k];
+                q.c[1][3 * (slot - 1) + k] = second[i1][k];
+            }
+        }
+        q.prim[0] = t0.prim, q.prim[1] = t1.prim;
+        flat_half_quad_[h] = int(flat_quads_.size());
+        flat_quads_.push_back(q);
+    }
+    // In the packs, their triangles' lanes (left out of the triangle test) and, in each pack,
+    // one lane per quad whose test it runs (its first triangle's, or the second's where the
+    // first lies in another pack: a quad is tested from each leaf that holds a half).
+    pack_quad_.assign(packs_.size() * BVHWidth, -1);
+    for (size_t p = 0; p < packs_.size(); ++p) {
+        PrimPack &pack = packs_[p];
+        pack.in_quads = pack.quads = 0;
+        for (size_t i = 0; i < flat_quads_.size(); ++i) {
+            int lanes[2] = {-1, -1};
+            for (int lane = 0; lane < BVHWidth; ++lane) {
+                if (!(pack.triangles >> lane & 1)) continue;
+                for (int j = 0; j < 2; ++j)
+                    if (pack.prim[lane] == flat_quads_[i].prim[j]) lanes[j] = lane;
+            }
+            for (int j = 0; j < 2; ++j)
+                if (lanes[j] >= 0) pack.in_quads |= uint8_t(1 << lanes[j]);
+            const int at = lanes[0] >= 0 ? lanes[0] : lanes[1];
+            if (at < 0) continue;
+            pack.quads |= uint8_t(1 << at);
+            pack_quad_[p * BVHWidth + size_t(at)] = int(i);
+        }
+    }
+    // The root's leaf children's boxes widened to hold their quads' widenings (so that a ray
+    // hitting a quad enters the box of each leaf that tests it).
+    if (flat_quads_.empty()) return;
+    BVHNode &root = nodes_[0];
+    for (int c = 0; c < BVHWidth; ++c) {
+        const uint32_t ref = root.child[c];
+        if (ref == EmptyChild || !(ref & LeafBit)) continue;
+        const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
+        for (uint32_t p = first; p < last; ++p) {
+            for (int mask = packs_[p].quads; mask; mask &= mask - 1) {
+                const FlatQuad &q = flat_quads_[size_t(pack_quad_[p * BVHWidth + size_t(__builtin_ctz(mask))])];
+                for (int a = 0; a < 3; ++a) {
+                    // The quad's extent along the axis, from its corners a, a + e1, a + e2
+                    // (its triangles' vertices), widened by twice QuadMargin of it.
+                    float lo = q.a[a], hi = q.a[a];
+                    for (const FlatTriangle &t : flat_triangles_) {
+                        if (t.prim != q.prim[0] && t.prim != q.prim[1]) continue;
+                        for (int j = 0; j < 3; ++j) lo = std::min(lo, t.v[j][a]), hi = std::max(hi, t.v[j][a]);
+                    }
+                    const float margin = 2.f * QuadMargin * (hi - lo) + 1e-6f * std::max(std::abs(lo), std::abs(hi));
+                    root.lo[a][c] = std::min(root.lo[a][c], lo - margin);
+                    root.hi[a][c] = std::max(root.hi[a][c], hi + margin);
+                }
+            }
+        }
+    }
 }
 
 /// Whether a ray's origin is finite: one that is not hits nothing (and must not enter empty
@@ -755,9 +984,10 @@ template <bool AnyHit>
 RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc,
                                      float &tmax, Hit *hit) const {
     bool found = false;
-    if (pack.triangles) {
+    const int triangles = AnyHit ? pack.triangles : pack.triangles & ~pack.in_quads;
+    if (triangles) {
         float t[BVHWidth], u[BVHWidth], v[BVHWidth];
-        int mask = intersect_triangles(pc, pack.tris, pack.triangles, ray.tmin, tmax, t, u, v);
+        int mask = intersect_triangles(pc, pack.tris, triangles, ray.tmin, tmax, t, u, v);
         if (mask) {
             if (AnyHit) return true;
             int best = __builtin_ctz(mask);
@@ -771,6 +1001,19 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
             hit->prim = pack.prim[best];
             hit->u = u[best];
             hit->v = v[best];
+        }
+    }
+    if (!AnyHit && __builtin_expect(pack.quads != 0, 0)) {
+        const QuadRay<ScalarLanes> r(ray.o.x, ray.o.y, ray.o.z, ray.d.x, ray.d.y, ray.d.z, ray.tmin);
+        const int *index = &pack_quad_[size_t(&pack - packs_.data()) * BVHWidth];
+        for (int mask = pack.quads; mask; mask &= mask - 1) {
+            const FlatQuad &q = flat_quads_[size_t(index[__builtin_ctz(mask)])];
+            const QuadHit<ScalarLanes> h = quad_test(q, r);
+            if (!(h.hit && h.t < tmax)) continue;
+            found = true;
+            tmax = h.t;
+            hit->t = h.t, hit->u = h.u, hit->v = h.v;
+            hit->prim = q.prim[h.second ? 1 : 0];
         }
     }
     for (int mask = pack.spheres; mask; mask &= mask - 1) {
@@ -1079,6 +1322,7 @@ struct BVH::FlatRays {
     const float *rox, *roy, *roz, *inv_x, *inv_y, *inv_z;  ///< the origin as given, 1 / d
     /// A single triangle whose box is smaller is tested chunk by chunk (see flat_triangles()).
     float cull_area;
+    const float *rdx, *rdy, *rdz;  ///< the direction as given (quad_test())
 };
 
 /// G triangles against rays [0, n), whole chunks of FlatChunk rays (flat_columns() fills up
@@ -1090,7 +1334,8 @@ struct BVH::FlatRays {
 /// triangles, and the nearest hit's triangle is kept as its index in flat_triangles_
 /// (`first` is tris' own); otherwise as its primitive.
 template <int G, bool Deferred>
-void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &q, int n) {
+void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQuad *const quads[2], const FlatRays &q,
+                         int n) {
     // (The columns as locals: loads through the struct's pointers do not vectorise.)
     const float *q_tmin = q.tmin, *q_tmax = q.tmax, *q_ox = q.ox, *q_oy = q.oy, *q_oz = q.oz;
     const float *q_sx = q.sx, *q_sy = q.sy, *q_sz = q.sz;
@@ -1122,8 +1367,14 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         }
     }
     const float *q_rox = q.rox, *q_roy = q.roy, *q_roz = q.roz, *q_ix = q.inv_x, *q_iy = q.inv_y, *q_iz = q.inv_z;
-    // Ray k against triangles [from, to) of the pass.
-    auto test_range = [&](int k, auto from, auto to) __attribute__((always_inline)) {
+    const float *q_rdx = q.rdx, *q_rdy = q.rdy, *q_rdz = q.rdz;
+    // Whether triangles i and i + 1 make a quad (a pass of four's halves).
+    auto quad_at = [&](int i) __attribute__((always_inline)) {
+        if constexpr (G == 4) return i % 2 == 0 && quads[i / 2] != nullptr;
+        return false;
+    };
+    // Ray k against triangles [from, to) of the pass (a pair that makes a quad as one).
+    [[maybe_unused]] auto test_range = [&](int k, auto from, auto to) __attribute__((always_inline)) {
         constexpr int I0 = decltype(from)::value, I1 = decltype(to)::value;
         const int kx = q_kx[k], ky = q_ky[k], kz = q_kz[k];
         const float ox = q_ox[k], oy = q_oy[k], oz = q_oz[k], sx = q_sx[k], sy = q_sy[k], sz = q_sz[k];
@@ -1133,6 +1384,21 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         uint32_t best = q_best[k];
 #pragma GCC unroll 4
         for (int i = I0; i < I1; ++i) {
+            if (quad_at(i)) {
+                // A pair that makes a quad: quad_test(), then as below.
+                const QuadRay<ScalarLanes> qr(q_rox[k], q_roy[k], q_roz[k], q_rdx[k], q_rdy[k], q_rdz[k], tmin);
+                const QuadHit<ScalarLanes> qh = quad_test(*quads[i / 2], qr);
+                const bool hit = qh.hit && qh.t < tmax;
+                retrace = hit && qh.t == best_t ? 1.f : retrace;
+                const bool better = hit && qh.t < best_t;
+                best_t = better ? qh.t : best_t;
+                best_u = better ? qh.u : best_u;
+                best_v = better ? qh.v : best_v;
+                best = better ? (qh.second ? ids[i + 1] : ids[i]) : best;
+                if constexpr (Deferred) best_inv_det = better ? 0.f : best_inv_det;
+                ++i;
+                continue;
+            }
             const float(*v)[3] = vert[i];
             float x[3], y[3], z[3];
             for (int j = 0; j < 3; ++j) {
@@ -1237,7 +1503,13 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
         F best_u = L::load(q_best_u + k0), best_v = L::load(q_best_v + k0);
         F best_inv_det = Deferred ? L::load(q_best_inv_det + k0) : zero;
         typename L::I best = L::load(q_best + k0);
-        for (int i = I0; i < I1; ++i) {
+        QuadRay<L> qr{};
+        if (G == 4 && (quads[0] || quads[1]))
+            qr = QuadRay<L>(L::load(q_rox + k0), L::load(q_roy + k0), L::load(q_roz + k0), L::load(q_rdx + k0),
+                            L::load(q_rdy + k0), L::load(q_rdz + k0), tmin);
+        // Triangle i: intersect_triangles()'s operations.
+        auto test_triangle = [&](auto index) __attribute__((always_inline)) {
+            constexpr int i = decltype(index)::value;
             F x[3], y[3], z[3];
             for (int j = 0; j < 3; ++j) {
                 z[j] = L::sub(L::pick(kz, tri[i][j]), oz);
@@ -1283,6 +1555,35 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRay
             best_v = L::select(better, best_v, L::mul(We, inv_det));
             best = L::select(better, best, L::set1(ids[i]));
             if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, inv_det);
+        };
+        // Triangles i and i + 1 as their quad: quad_test(), its hit kept as a triangle's.
+        auto test_quad = [&](auto index) __attribute__((always_inline)) {
+            constexpr int i = decltype(index)::value;
+            const QuadHit<L> qh = quad_test(*quads[i / 2], qr);
+            const M hit = L::both(qh.hit, L::lt(qh.t, tmax));
+            retrace = L::select(L::both(hit, L::eq(qh.t, best_t)), retrace, one);
+            const M better = L::both(hit, L::lt(qh.t, best_t));
+            best_t = L::select(better, best_t, qh.t);
+            best_u = L::select(better, best_u, qh.u);
+            best_v = L::select(better, best_v, qh.v);
+            best = L::select(better, best, L::select(qh.second, L::set1(ids[i]), L::set1(ids[i + 1])));
+            if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, zero);
+        };
+        // Each half of the pass: its quad, or its two triangles.
+        auto test_half = [&](auto index) __attribute__((always_inline)) {
+            constexpr int i = decltype(index)::value;
+            if (quads[i / 2]) {
+                test_quad(index);
+            } else {
+                test_triangle(index);
+                test_triangle(std::integral_constant<int, i + 1>{});
+            }
+        };
+        if constexpr (G == 4) {
+            if constexpr (I0 == 0) test_half(std::integral_constant<int, 0>{});
+            if constexpr (I1 == 4) test_half(std::integral_constant<int, 2>{});
+        } else {
+            test_triangle(std::integral_constant<int, 0>{});
         }
         L::store(q_retrace + k0, retrace), L::store(q_best_t + k0, best_t);
         L::store(q_best_u + k0, best_u), L::store(q_best_v + k0, best_v);
@@ -1372,8 +1673,10 @@ void BVH::flat_rounding_check(const FlatRays &q, int n) const {
         const float delta_x = g5 * (max_xt + max_zt), delta_y = g5 * (max_yt + max_zt);
         const float delta_e = 2.f * (g2 * (max_xt * max_yt) + (delta_y * max_xt + delta_x * max_yt));
         const float bound = 1.001f * (3.f * (2.f * g3 * max_zt + (delta_e * max_zt) * std::abs(q_inv_det[k])));
+        // (A quad's hit, whose bound its test applied, has a 1 / det of 0.)
         const float found = q_best[k] != ~0u ? 1.f : 0.f;
-        doubtful[k] = q_best_t[k] > bound ? 0 : (found != 0.f ? 1 : 0);
+        const float tested = q_inv_det[k] != 0.f ? 1.f : 0.f;
+        doubtful[k] = q_best_t[k] > bound ? 0 : (found * tested != 0.f ? 1 : 0);
     }
     const int m = simd::select_indices(doubtful, n, 1, list);
     const int padded = simd::pad_indices(list, m);
@@ -1492,17 +1795,34 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) inv_x[k] = 1.f / r.dx[k], inv_y[k] = 1.f / r.dy[k], inv_z[k] = 1.f / r.dz[k];
     FlatRays rays{r.tmin, r.tmax, kx, ky, kz, ox, oy, oz, sx, sy, sz, retrace, best_t, best_u, best_v, best_prim,
-                  best_inv_det, r.ox, r.oy, r.oz, inv_x, inv_y, inv_z, 0.5f * flat_area_};
+                  best_inv_det, r.ox, r.oy, r.oz, inv_x, inv_y, inv_z, 0.5f * flat_area_,
+                  r.dx, r.dy, r.dz};
     // (The rounding bound is deferred beyond 16 triangles: cornell-box's 36, 468 -> 440 ms; the
     // cbox's 12 took 2% longer, the gathers of the check costing more than it saves there.)
+    // A pass's pairs that make quads, tested as such in closest-hit queries (occlusion
+    // queries test their triangles, as occluded() does).
     const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;
+    const FlatQuad *const no_quads[2] = {nullptr, nullptr};
+    auto pass_quads = [&](size_t i, const FlatQuad *quads[2]) {
+        for (int h = 0; h < 2; ++h) {
+            const int index = shadow ? -1 : flat_half_quad_[i / 2 + size_t(h)];
+            quads[h] = index >= 0 ? &flat_quads_[size_t(index)] : nullptr;
+        }
+    };
+    const FlatQuad *quads[2];
     if (n_tris > 16) {
-        for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4, true>(&flat_triangles_[i], uint32_t(i), rays, n);
-        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, true>(&flat_triangles_[i], uint32_t(i), rays, n);
+        for (size_t i = 0; i < n_fours; i += 4) {
+            pass_quads(i, quads);
+            flat_triangles<4, true>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
+        }
+        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, true>(&flat_triangles_[i], uint32_t(i), no_quads, rays, n);
         flat_rounding_check(rays, n);
     } else {
-        for (size_t i = 0; i < n_fours; i += 4) flat_triangles<4, false>(&flat_triangles_[i], uint32_t(i), rays, n);
-        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), rays, n);
+        for (size_t i = 0; i < n_fours; i += 4) {
+            pass_quads(i, quads);
+            flat_triangles<4, false>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
+        }
+        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), no_quads, rays, n);
     }
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double, for those rays in lanes). Its margin
@@ -1572,7 +1892,13 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
 void BVH::nearest_columns(const RayColumns &r, int n, const HitColumns &hits, bool shadow) const {
     auto trace = [&](int k) {
         Hit hit;
-        intersect(r.ray(k), &hit);
+        if (shadow) {
+            // (Whether something blocks it, as occluded() decides, by the triangles of the
+            // quads: the prim alone is read.)
+            hit.prim = occluded(r.ray(k)) ? 0u : ~0u;
+        } else {
+            intersect(r.ray(k), &hit);
+        }
         hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
     };
     if (!flat() && !two_phase_) {

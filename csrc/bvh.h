@@ -34,8 +34,28 @@ struct PrimPack {
     uint8_t triangles;  ///< bit mask of the lanes holding triangles
     uint8_t spheres;    ///< bit mask of the lanes holding spheres
     uint8_t others;     ///< bit mask of the lanes holding other analytic shapes (disks, cylinders)
+    uint8_t in_quads;   ///< bit mask of the triangle lanes a FlatQuad tests instead (closest hits)
+    uint8_t quads;      ///< bit mask of the lanes whose FlatQuad this pack tests (BVH::pack_quad_)
 };
 static_assert(BVHWidth <= 8, "PrimPack's lane masks are 8 bits wide");
+
+/// Two triangles of a flat tree that make a parallelogram (a rectangle's halves, a cube's
+/// face), tested as one in closest-hit queries: the ray meets the plane through `a` of unit
+/// normal `n` at t, where the point a + s e1 + r e2 has coordinates s = (x - a) . q1 and
+/// r = (x - a) . q2 (q1, q2 the dual basis of the edges e1, e2 from `a`). The first triangle
+/// holds a, a + e1 and a + e2 (s + r <= 1), the second the rest. See quad_test() in bvh.cpp
+/// for the rounding bounds.
+struct FlatQuad {
+    float a[3], n[3], q1[3], q2[3];
+    float pa;   ///< gamma(5) |a|_1 (the rounding of x - a, with the origin's)
+    float pt;   ///< pa and the vertices' largest distance from the plane (t's error bound)
+    float st;   ///< twice the vertices' largest offset from their corners in (s, r)
+    float qn;   ///< twice the larger of |q1|_1 and |q2|_1
+    /// Each triangle's barycentric u and v (the weights of its vertices 1 and 2) as
+    /// c0 + cs s + cr r: [second triangle][u c0, cs, cr, v c0, cs, cr].
+    float c[2][6];
+    uint32_t prim[2];  ///< the two triangles' primitives
+};
 
 /// Rays as columns (a wavefront's batch): origin, direction and interval of each.
 struct RayColumns {
@@ -160,6 +180,8 @@ public:
 
     /// Number of BVHWidth-wide nodes.
     size_t node_count() const { return nodes_.size(); }
+    /// Number of pairs of flat triangles tested as quads (FlatQuad).
+    size_t quad_count() const { return flat_quads_.size(); }
     /// SAH cost of the binary tree before collapsing (traversal 1, intersection 1), for tests.
     double sah_cost() const { return sah_cost_; }
 
@@ -198,6 +220,7 @@ private:
     /// Test a leaf's pack: its triangles, spheres and other shapes in (ray.tmin, tmax). With
     /// AnyHit, whether one is hit; otherwise whether one is hit nearer than tmax, which then
     /// becomes its distance, with `hit` its hit.
+    /// (In closest-hit queries, a pack's triangles in quads are tested as their quads: FlatQuad.)
     template <bool AnyHit>
     bool intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc, float &tmax,
                         Hit *hit) const;
@@ -218,13 +241,25 @@ private:
         uint32_t prim;
     };
     std::vector<FlatTriangle> flat_triangles_;
+    /// The pairs of flat triangles (2h, 2h + 1) of flat_columns()' passes of four that make a
+    /// parallelogram, as quads: flat_half_quad_[h] the pair's index in flat_quads_, else -1.
+    /// Closest-hit queries test them as quads: the lanes by pairs, the packs by their lanes
+    /// `quads` (pack_quad_[pack * BVHWidth + lane] the quad's index), leaving out their
+    /// triangles' lanes `in_quads`; the root's leaf boxes are widened to hold the quads'
+    /// widening. Occlusion queries test their triangles.
+    std::vector<FlatQuad> flat_quads_;
+    std::vector<int> flat_half_quad_;
+    std::vector<int> pack_quad_;
+    /// Find the flat pairs that make quads, and mark them in the packs (build()).
+    void build_quads();
     std::vector<float> flat_coords_;  ///< their vertices, [vertex][axis][triangle]
     std::vector<uint32_t> flat_prims_;  ///< their primitives
     float flat_area_ = 0.f;  ///< the surface area of their bounding box
     float flat_lo_[3] = {}, flat_hi_[3] = {};  ///< that box's corners
     struct FlatRays;
     template <int G, bool Deferred>
-    static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatRays &rays, int n);
+    static void flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQuad *const quads[2],
+                               const FlatRays &rays, int n);
     void flat_rounding_check(const FlatRays &rays, int n) const;
     static void flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
                             float *t, float *hit);

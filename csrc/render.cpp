@@ -205,6 +205,11 @@ struct SplatWeights {
     }
 };
 
+// (GCC 12 takes the unset pass-through operand of some AVX-512 intrinsics, as the film's
+// _mm512_insertf64x4, for an uninitialised variable, depending on how far it inlines the
+// functions below: GCC bug 105593, fixed in GCC 13. Until the end of the file.)
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+
 /// The film of one render: a PixelSum per pixel of the requested rows, and the weighted sums
 /// of the samples' tangents when it splats dual numbers. A tile splats its samples into a
 /// Block of its own, covering the tile and the border its splats reach (its neighbours'
