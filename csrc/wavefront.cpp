@@ -1640,7 +1640,7 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
     // (A material's constant inputs read at 32-bit word indices where GCC gathers, word_of():
     // cornell-box, the cbox and textured 1-1.5% faster than indexed as Materials.)
     using M = WavefrontScene::Material;
-    constexpr int A = int(offsetof(M, ar) / 4), T = int(offsetof(M, tr) / 4);
+    [[maybe_unused]] constexpr int A = int(offsetof(M, ar) / 4), T = int(offsetof(M, tr) / 4);  // (RBPT_GATHER_WORDS)
     static_assert(offsetof(M, ag) == offsetof(M, ar) + 4 && offsetof(M, ab) == offsetof(M, ar) + 8 &&
                   offsetof(M, tg) == offsetof(M, tr) + 4 && offsetof(M, tb) == offsetof(M, tr) + 8,
                   "a material's channels are consecutive words");
