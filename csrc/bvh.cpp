@@ -27,10 +27,10 @@
 // Any-hit (shadow) queries do not order children and return at the first hit.
 //
 // Quads: in a flat tree (or a two-phase tree's root leaves), a pair of triangles of
-// flat_columns()' passes that make a parallelogram is a FlatQuad, whose closest-hit test
-// (quad_test()) is the same in the lanes' passes and in the packs (one lane of each pack
-// holding a half runs it; the halves' lanes leave the packs' triangle test). Occlusion
-// queries test the triangles.
+// flat_columns()' passes that make a parallelogram is a FlatQuad, whose test (quad_test())
+// is the same in the lanes' passes and in the packs (a lane of each pack holding a half
+// runs it, the pack's quads in one vector test, QuadPack; the halves' lanes leave the
+// packs' triangle test), in closest-hit and occlusion queries alike.
 
 #include "bvh.h"
 
@@ -460,10 +460,62 @@ struct QuadHit {
     typename L::F t, u, v;      ///< its distance, and the triangle's barycentrics
 };
 
-/// A ray against a FlatQuad, in lanes of L (FlatLanes) or for one ray (ScalarLanes), the
-/// same operations in the same order: the plane's distance t = -((o - a) . n) / (d . n), the
-/// point h = (o - a) + t d, its coordinates s = h . q1 and r = h . q2. Rounding, bounded as
-/// pbrt bounds its shapes' (gamma(k) for k operations; n is a unit vector):
+/// A pack's quads in the lanes of simd::V, for one ray (PackLanes): FlatLanes' operations
+/// again (a mask is a lane of all ones).
+struct PackLanes {
+    using F = simd::V;
+    using M = simd::V;
+    static F set1(float x) { return simd::set1(x); }
+    static F add(F a, F b) { return simd::add(a, b); }
+    static F sub(F a, F b) { return simd::sub(a, b); }
+    static F mul(F a, F b) { return simd::mul(a, b); }
+    static F div(F a, F b) { return simd::div(a, b); }
+    static F min(F a, F b) { return simd::min(a, b); }
+    static F abs(F a) { return simd::abs(a); }
+    static M lt(F a, F b) { return simd::lt(a, b); }
+    static M le(F a, F b) { return simd::le(a, b); }
+    static M gt(F a, F b) { return simd::gt(a, b); }
+    static M ge(F a, F b) { return simd::le(b, a); }
+    static M both(M a, M b) { return simd::bit_and(a, b); }
+    /// m ? b : a.
+    static F select(M m, F a, F b) { return simd::bit_or(simd::bit_and(m, b), simd::and_not(m, a)); }
+};
+
+/// quad_test()'s constants: one quad's in every lane (OneQuad: the lanes' passes, a ray per
+/// lane; or one ray), or a pack's quads lane by lane (QuadPack's, PackQuads: one ray).
+template <class L>
+struct OneQuad {
+    using F = typename L::F;
+    const FlatQuad &q;
+    F a(int i) const { return L::set1(q.a[i]); }
+    F n(int i) const { return L::set1(q.n[i]); }
+    F q1(int i) const { return L::set1(q.q1[i]); }
+    F q2(int i) const { return L::set1(q.q2[i]); }
+    F pa() const { return L::set1(q.pa); }
+    F pt() const { return L::set1(q.pt); }
+    F st() const { return L::set1(q.st); }
+    F qn() const { return L::set1(q.qn); }
+    F c(int second, int k) const { return L::set1(q.c[second][k]); }
+};
+struct PackQuads {
+    using F = simd::V;
+    const QuadPack &q;
+    F a(int i) const { return simd::load(q.a[i]); }
+    F n(int i) const { return simd::load(q.n[i]); }
+    F q1(int i) const { return simd::load(q.q1[i]); }
+    F q2(int i) const { return simd::load(q.q2[i]); }
+    F pa() const { return simd::load(q.pa); }
+    F pt() const { return simd::load(q.pt); }
+    F st() const { return simd::load(q.st); }
+    F qn() const { return simd::load(q.qn); }
+    F c(int second, int k) const { return simd::load(q.c[second][k]); }
+};
+
+/// A ray against a FlatQuad, in lanes of L (FlatLanes) or for one ray (ScalarLanes), or a
+/// ray against a pack's quads (PackLanes), the same operations in the same order: the
+/// plane's distance t = -((o - a) . n) / (d . n), the point h = (o - a) + t d, its
+/// coordinates s = h . q1 and r = h . q2. Rounding, bounded as pbrt bounds its shapes'
+/// (gamma(k) for k operations; n is a unit vector):
 /// - t's error is at most t_err = ((gamma(5) (|o|_1 + |a|_1) + plane) + |t| gamma(3) |d|_1)
 ///   / |d . n| + gamma(2) |t|, with `plane` the vertices' largest distance from the plane
 ///   (FlatQuad::pt). A ray leaving the quad (its origin offset off a surface point, which
@@ -474,34 +526,34 @@ struct QuadHit {
 ///   by twice that (capped at QuadMargin), so that a ray meeting an edge it shares with
 ///   another quad, or a triangle's edge, hits one of them (the triangles' watertightness,
 ///   kept up to rays whose widening reaches the cap: an origin some 10^4 edges away).
-template <class L>
-RBPT_INLINE QuadHit<L> quad_test(const FlatQuad &q, const QuadRay<L> &r) {
+template <class L, class K>
+RBPT_INLINE QuadHit<L> quad_test(const K &q, const QuadRay<L> &r) {
     using F = typename L::F;
     using M = typename L::M;
     const F zero = L::set1(0.f), one = L::set1(1.f);
-    auto dot = [](const F x[3], const float c[3]) __attribute__((always_inline)) {
-        return L::add(L::add(L::mul(x[0], L::set1(c[0])), L::mul(x[1], L::set1(c[1]))), L::mul(x[2], L::set1(c[2])));
+    auto dot = [](const F x[3], F c0, F c1, F c2) __attribute__((always_inline)) {
+        return L::add(L::add(L::mul(x[0], c0), L::mul(x[1], c1)), L::mul(x[2], c2));
     };
-    const F w[3] = {L::sub(r.o[0], L::set1(q.a[0])), L::sub(r.o[1], L::set1(q.a[1])), L::sub(r.o[2], L::set1(q.a[2]))};
-    const F inv_dn = L::div(one, dot(r.d, q.n));
-    const F t = L::mul(L::sub(zero, dot(w, q.n)), inv_dn);
+    const F w[3] = {L::sub(r.o[0], q.a(0)), L::sub(r.o[1], q.a(1)), L::sub(r.o[2], q.a(2))};
+    const F inv_dn = L::div(one, dot(r.d, q.n(0), q.n(1), q.n(2)));
+    const F t = L::mul(L::sub(zero, dot(w, q.n(0), q.n(1), q.n(2))), inv_dn);
     const F h[3] = {L::add(w[0], L::mul(t, r.d[0])), L::add(w[1], L::mul(t, r.d[1])), L::add(w[2], L::mul(t, r.d[2]))};
-    const F s = dot(h, q.q1), rr = dot(h, q.q2);
+    const F s = dot(h, q.q1(0), q.q1(1), q.q1(2)), rr = dot(h, q.q2(0), q.q2(1), q.q2(2));
     // The bounds on t's error and on s's and r's.
     const F at = L::abs(t);
-    const F t_err = L::add(L::mul(L::add(L::add(r.ao5, L::set1(q.pt)), L::mul(at, r.ad3)), L::abs(inv_dn)),
+    const F t_err = L::add(L::mul(L::add(L::add(r.ao5, q.pt()), L::mul(at, r.ad3)), L::abs(inv_dn)),
                            L::mul(L::set1(gamma(2)), at));
-    const F st_err = L::add(L::add(r.ao5, L::set1(q.pa)), L::add(L::mul(at, r.ad5), L::mul(t_err, r.ad)));
-    const F widen = L::min(L::add(L::set1(q.st), L::mul(L::set1(q.qn), st_err)), L::set1(QuadMargin));
+    const F st_err = L::add(L::add(r.ao5, q.pa()), L::add(L::mul(at, r.ad5), L::mul(t_err, r.ad)));
+    const F widen = L::min(L::add(q.st(), L::mul(q.qn(), st_err)), L::set1(QuadMargin));
     const F lo = L::sub(zero, widen), hi = L::add(one, widen);
     M hit = L::both(L::both(L::ge(s, lo), L::le(s, hi)), L::both(L::ge(rr, lo), L::le(rr, hi)));
     hit = L::both(hit, L::both(L::gt(t, r.tmin), L::gt(t, L::add(t_err, t_err))));
     // The triangle, and its barycentrics (c0 + cs s + cr r).
     const M second = L::gt(L::add(s, rr), one);
     auto weight = [&](int k) __attribute__((always_inline)) {
-        const F c0 = L::select(second, L::set1(q.c[0][k]), L::set1(q.c[1][k]));
-        const F cs = L::select(second, L::set1(q.c[0][k + 1]), L::set1(q.c[1][k + 1]));
-        const F cr = L::select(second, L::set1(q.c[0][k + 2]), L::set1(q.c[1][k + 2]));
+        const F c0 = L::select(second, q.c(0, k), q.c(1, k));
+        const F cs = L::select(second, q.c(0, k + 1), q.c(1, k + 1));
+        const F cr = L::select(second, q.c(0, k + 2), q.c(1, k + 2));
         return L::add(c0, L::add(L::mul(cs, s), L::mul(cr, rr)));
     };
     return {hit, second, t, weight(0), weight(3)};
@@ -896,25 +948,38 @@ void BVH::build_quads() {
     }
     // In the packs, their triangles' lanes (left out of the triangle test) and, in each pack,
     // one lane per quad whose test it runs (its first triangle's, or the second's where the
-    // first lies in another pack: a quad is tested from each leaf that holds a half).
-    pack_quad_.assign(packs_.size() * BVHWidth, -1);
+    // first lies in another pack: a quad is tested from each leaf that holds a half), with
+    // those quads' constants in a QuadPack (its other lanes zero: no hit).
+    quad_packs_.clear();
+    pack_quad_.assign(packs_.size(), -1);
     for (size_t p = 0; p < packs_.size(); ++p) {
         PrimPack &pack = packs_[p];
         pack.in_quads = pack.quads = 0;
-        for (size_t i = 0; i < flat_quads_.size(); ++i) {
+        QuadPack columns{};
+        for (const FlatQuad &q : flat_quads_) {
             int lanes[2] = {-1, -1};
             for (int lane = 0; lane < BVHWidth; ++lane) {
                 if (!(pack.triangles >> lane & 1)) continue;
                 for (int j = 0; j < 2; ++j)
-                    if (pack.prim[lane] == flat_quads_[i].prim[j]) lanes[j] = lane;
+                    if (pack.prim[lane] == q.prim[j]) lanes[j] = lane;
             }
             for (int j = 0; j < 2; ++j)
                 if (lanes[j] >= 0) pack.in_quads |= uint8_t(1 << lanes[j]);
-            const int at = lanes[0] >= 0 ? lanes[0] : lanes[1];
-            if (at < 0) continue;
-            pack.quads |= uint8_t(1 << at);
-            pack_quad_[p * BVHWidth + size_t(at)] = int(i);
+            const int l = lanes[0] >= 0 ? lanes[0] : lanes[1];
+            if (l < 0) continue;
+            pack.quads |= uint8_t(1 << l);
+            for (int i = 0; i < 3; ++i) {
+                columns.a[i][l] = q.a[i], columns.n[i][l] = q.n[i];
+                columns.q1[i][l] = q.q1[i], columns.q2[i][l] = q.q2[i];
+            }
+            columns.pa[l] = q.pa, columns.pt[l] = q.pt, columns.st[l] = q.st, columns.qn[l] = q.qn;
+            for (int j = 0; j < 2; ++j)
+                for (int k = 0; k < 6; ++k) columns.c[j][k][l] = q.c[j][k];
+            columns.prim[0][l] = q.prim[0], columns.prim[1][l] = q.prim[1];
         }
+        if (!pack.quads) continue;
+        pack_quad_[p] = int(quad_packs_.size());
+        quad_packs_.push_back(columns);
     }
     // The root's leaf children's boxes widened to hold their quads' widenings (so that a ray
     // hitting a quad enters the box of each leaf that tests it).
@@ -926,13 +991,15 @@ void BVH::build_quads() {
         const uint32_t first = (ref & ~LeafBit) >> 3, last = first + (ref & 7) + 1;
         for (uint32_t p = first; p < last; ++p) {
             for (int mask = packs_[p].quads; mask; mask &= mask - 1) {
-                const FlatQuad &q = flat_quads_[size_t(pack_quad_[p * BVHWidth + size_t(__builtin_ctz(mask))])];
+                const QuadPack &quads = quad_packs_[size_t(pack_quad_[p])];
+                const int l = __builtin_ctz(mask);
+                const uint32_t prims[2] = {quads.prim[0][l], quads.prim[1][l]};
                 for (int a = 0; a < 3; ++a) {
                     // The quad's extent along the axis, from its corners a, a + e1, a + e2
                     // (its triangles' vertices), widened by twice QuadMargin of it.
-                    float lo = q.a[a], hi = q.a[a];
+                    float lo = quads.a[a][l], hi = quads.a[a][l];
                     for (const FlatTriangle &t : flat_triangles_) {
-                        if (t.prim != q.prim[0] && t.prim != q.prim[1]) continue;
+                        if (t.prim != prims[0] && t.prim != prims[1]) continue;
                         for (int j = 0; j < 3; ++j) lo = std::min(lo, t.v[j][a]), hi = std::max(hi, t.v[j][a]);
                     }
                     const float margin = 2.f * QuadMargin * (hi - lo) + 1e-6f * std::max(std::abs(lo), std::abs(hi));
@@ -984,7 +1051,7 @@ template <bool AnyHit>
 RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc,
                                      float &tmax, Hit *hit) const {
     bool found = false;
-    const int triangles = AnyHit ? pack.triangles : pack.triangles & ~pack.in_quads;
+    const int triangles = pack.triangles & ~pack.in_quads;
     if (triangles) {
         float t[BVHWidth], u[BVHWidth], v[BVHWidth];
         int mask = intersect_triangles(pc, pack.tris, triangles, ray.tmin, tmax, t, u, v);
@@ -1003,17 +1070,27 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
             hit->v = v[best];
         }
     }
-    if (!AnyHit && __builtin_expect(pack.quads != 0, 0)) {
-        const QuadRay<ScalarLanes> r(ray.o.x, ray.o.y, ray.o.z, ray.d.x, ray.d.y, ray.d.z, ray.tmin);
-        const int *index = &pack_quad_[size_t(&pack - packs_.data()) * BVHWidth];
-        for (int mask = pack.quads; mask; mask &= mask - 1) {
-            const FlatQuad &q = flat_quads_[size_t(index[__builtin_ctz(mask)])];
-            const QuadHit<ScalarLanes> h = quad_test(q, r);
-            if (!(h.hit && h.t < tmax)) continue;
+    if (__builtin_expect(pack.quads != 0, 0)) {
+        // The pack's quads in one vector test, the nearest hit of the lowest lane kept.
+        using L = PackLanes;
+        const QuadPack &quads = quad_packs_[size_t(pack_quad_[size_t(&pack - packs_.data())])];
+        const QuadRay<L> r(L::set1(ray.o.x), L::set1(ray.o.y), L::set1(ray.o.z), L::set1(ray.d.x), L::set1(ray.d.y),
+                           L::set1(ray.d.z), L::set1(ray.tmin));
+        const QuadHit<L> h = quad_test(PackQuads{quads}, r);
+        int mask = simd::mask(L::both(h.hit, L::lt(h.t, L::set1(tmax)))) & pack.quads;
+        if (mask) {
+            if (AnyHit) return true;
+            alignas(32) float t[BVHWidth], u[BVHWidth], v[BVHWidth];
+            simd::store(t, h.t), simd::store(u, h.u), simd::store(v, h.v);
+            int best = __builtin_ctz(mask);
+            for (mask &= mask - 1; mask; mask &= mask - 1) {
+                const int i = __builtin_ctz(mask);
+                if (t[i] < t[best]) best = i;
+            }
             found = true;
-            tmax = h.t;
-            hit->t = h.t, hit->u = h.u, hit->v = h.v;
-            hit->prim = q.prim[h.second ? 1 : 0];
+            tmax = t[best];
+            hit->t = t[best], hit->u = u[best], hit->v = v[best];
+            hit->prim = quads.prim[simd::mask(h.second) >> best & 1][best];
         }
     }
     for (int mask = pack.spheres; mask; mask &= mask - 1) {
@@ -1387,7 +1464,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
             if (quad_at(i)) {
                 // A pair that makes a quad: quad_test(), then as below.
                 const QuadRay<ScalarLanes> qr(q_rox[k], q_roy[k], q_roz[k], q_rdx[k], q_rdy[k], q_rdz[k], tmin);
-                const QuadHit<ScalarLanes> qh = quad_test(*quads[i / 2], qr);
+                const QuadHit<ScalarLanes> qh = quad_test(OneQuad<ScalarLanes>{*quads[i / 2]}, qr);
                 const bool hit = qh.hit && qh.t < tmax;
                 retrace = hit && qh.t == best_t ? 1.f : retrace;
                 const bool better = hit && qh.t < best_t;
@@ -1559,7 +1636,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
         // Triangles i and i + 1 as their quad: quad_test(), its hit kept as a triangle's.
         auto test_quad = [&](auto index) __attribute__((always_inline)) {
             constexpr int i = decltype(index)::value;
-            const QuadHit<L> qh = quad_test(*quads[i / 2], qr);
+            const QuadHit<L> qh = quad_test(OneQuad<L>{*quads[i / 2]}, qr);
             const M hit = L::both(qh.hit, L::lt(qh.t, tmax));
             retrace = L::select(L::both(hit, L::eq(qh.t, best_t)), retrace, one);
             const M better = L::both(hit, L::lt(qh.t, best_t));
@@ -1799,13 +1876,12 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
                   r.dx, r.dy, r.dz};
     // (The rounding bound is deferred beyond 16 triangles: cornell-box's 36, 468 -> 440 ms; the
     // cbox's 12 took 2% longer, the gathers of the check costing more than it saves there.)
-    // A pass's pairs that make quads, tested as such in closest-hit queries (occlusion
-    // queries test their triangles, as occluded() does).
+    // A pass's pairs that make quads, tested as such.
     const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;
     const FlatQuad *const no_quads[2] = {nullptr, nullptr};
     auto pass_quads = [&](size_t i, const FlatQuad *quads[2]) {
         for (int h = 0; h < 2; ++h) {
-            const int index = shadow ? -1 : flat_half_quad_[i / 2 + size_t(h)];
+            const int index = flat_half_quad_[i / 2 + size_t(h)];
             quads[h] = index >= 0 ? &flat_quads_[size_t(index)] : nullptr;
         }
     };
@@ -1892,13 +1968,7 @@ void BVH::intersect_columns(const RayColumns &r, int n, const HitColumns &hits) 
 void BVH::nearest_columns(const RayColumns &r, int n, const HitColumns &hits, bool shadow) const {
     auto trace = [&](int k) {
         Hit hit;
-        if (shadow) {
-            // (Whether something blocks it, as occluded() decides, by the triangles of the
-            // quads: the prim alone is read.)
-            hit.prim = occluded(r.ray(k)) ? 0u : ~0u;
-        } else {
-            intersect(r.ray(k), &hit);
-        }
+        intersect(r.ray(k), &hit);
         hits.t[k] = hit.t, hits.u[k] = hit.u, hits.v[k] = hit.v, hits.prim[k] = hit.prim;
     };
     if (!flat() && !two_phase_) {

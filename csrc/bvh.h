@@ -34,13 +34,13 @@ struct PrimPack {
     uint8_t triangles;  ///< bit mask of the lanes holding triangles
     uint8_t spheres;    ///< bit mask of the lanes holding spheres
     uint8_t others;     ///< bit mask of the lanes holding other analytic shapes (disks, cylinders)
-    uint8_t in_quads;   ///< bit mask of the triangle lanes a FlatQuad tests instead (closest hits)
-    uint8_t quads;      ///< bit mask of the lanes whose FlatQuad this pack tests (BVH::pack_quad_)
+    uint8_t in_quads;   ///< bit mask of the triangle lanes a FlatQuad tests instead
+    uint8_t quads;      ///< bit mask of the lanes whose FlatQuad this pack tests (QuadPack)
 };
 static_assert(BVHWidth <= 8, "PrimPack's lane masks are 8 bits wide");
 
 /// Two triangles of a flat tree that make a parallelogram (a rectangle's halves, a cube's
-/// face), tested as one in closest-hit queries: the ray meets the plane through `a` of unit
+/// face), tested as one: the ray meets the plane through `a` of unit
 /// normal `n` at t, where the point a + s e1 + r e2 has coordinates s = (x - a) . q1 and
 /// r = (x - a) . q2 (q1, q2 the dual basis of the edges e1, e2 from `a`). The first triangle
 /// holds a, a + e1 and a + e2 (s + r <= 1), the second the rest. See quad_test() in bvh.cpp
@@ -55,6 +55,15 @@ struct FlatQuad {
     /// c0 + cs s + cr r: [second triangle][u c0, cs, cr, v c0, cs, cr].
     float c[2][6];
     uint32_t prim[2];  ///< the two triangles' primitives
+};
+
+/// The quads a pack tests (PrimPack::quads), lane by lane for one vector test: FlatQuad's
+/// fields as columns, lane l the quad a pack's lane l runs.
+struct alignas(32) QuadPack {
+    float a[3][BVHWidth], n[3][BVHWidth], q1[3][BVHWidth], q2[3][BVHWidth];
+    float pa[BVHWidth], pt[BVHWidth], st[BVHWidth], qn[BVHWidth];
+    float c[2][6][BVHWidth];
+    uint32_t prim[2][BVHWidth];
 };
 
 /// Rays as columns (a wavefront's batch): origin, direction and interval of each.
@@ -220,7 +229,7 @@ private:
     /// Test a leaf's pack: its triangles, spheres and other shapes in (ray.tmin, tmax). With
     /// AnyHit, whether one is hit; otherwise whether one is hit nearer than tmax, which then
     /// becomes its distance, with `hit` its hit.
-    /// (In closest-hit queries, a pack's triangles in quads are tested as their quads: FlatQuad.)
+    /// (A pack's triangles in quads are tested as their quads: FlatQuad, QuadPack.)
     template <bool AnyHit>
     bool intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc, float &tmax,
                         Hit *hit) const;
@@ -243,12 +252,12 @@ private:
     std::vector<FlatTriangle> flat_triangles_;
     /// The pairs of flat triangles (2h, 2h + 1) of flat_columns()' passes of four that make a
     /// parallelogram, as quads: flat_half_quad_[h] the pair's index in flat_quads_, else -1.
-    /// Closest-hit queries test them as quads: the lanes by pairs, the packs by their lanes
-    /// `quads` (pack_quad_[pack * BVHWidth + lane] the quad's index), leaving out their
-    /// triangles' lanes `in_quads`; the root's leaf boxes are widened to hold the quads'
-    /// widening. Occlusion queries test their triangles.
+    /// Every query tests them as quads: the lanes by pairs, the packs by their lanes `quads`
+    /// (in one vector test: quad_packs_[pack_quad_[pack]]), leaving out their triangles'
+    /// lanes `in_quads`; the root's leaf boxes are widened to hold the quads' widening.
     std::vector<FlatQuad> flat_quads_;
     std::vector<int> flat_half_quad_;
+    std::vector<QuadPack> quad_packs_;
     std::vector<int> pack_quad_;
     /// Find the flat pairs that make quads, and mark them in the packs (build()).
     void build_quads();
