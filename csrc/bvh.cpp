@@ -481,35 +481,33 @@ struct PackLanes {
     static F select(M m, F a, F b) { return simd::bit_or(simd::bit_and(m, b), simd::and_not(m, a)); }
 };
 
-/// quad_test()'s constants: one quad's in every lane (OneQuad: the lanes' passes, a ray per
-/// lane; or one ray), or a pack's quads lane by lane (QuadPack's, PackQuads: one ray).
+/// quad_test()'s constants, FlatQuad's fields through `get`: one quad's in every lane
+/// (OneQuad, from a FlatQuad: the lanes' passes, a ray per lane; or one ray), or a pack's
+/// quads lane by lane (PackQuads, from a QuadPack's columns: one ray).
+template <class Q, class Get>
+struct QuadFields {
+    const Q &q;
+    Get get;
+    auto a(int i) const { return get(q.a[i]); }
+    auto n(int i) const { return get(q.n[i]); }
+    auto q1(int i) const { return get(q.q1[i]); }
+    auto q2(int i) const { return get(q.q2[i]); }
+    auto pa() const { return get(q.pa); }
+    auto pt() const { return get(q.pt); }
+    auto st() const { return get(q.st); }
+    auto qn() const { return get(q.qn); }
+    auto c(int second, int k) const { return get(q.c[second][k]); }
+};
 template <class L>
-struct OneQuad {
-    using F = typename L::F;
-    const FlatQuad &q;
-    F a(int i) const { return L::set1(q.a[i]); }
-    F n(int i) const { return L::set1(q.n[i]); }
-    F q1(int i) const { return L::set1(q.q1[i]); }
-    F q2(int i) const { return L::set1(q.q2[i]); }
-    F pa() const { return L::set1(q.pa); }
-    F pt() const { return L::set1(q.pt); }
-    F st() const { return L::set1(q.st); }
-    F qn() const { return L::set1(q.qn); }
-    F c(int second, int k) const { return L::set1(q.c[second][k]); }
+struct Broadcast {
+    typename L::F operator()(float x) const { return L::set1(x); }
 };
-struct PackQuads {
-    using F = simd::V;
-    const QuadPack &q;
-    F a(int i) const { return simd::load(q.a[i]); }
-    F n(int i) const { return simd::load(q.n[i]); }
-    F q1(int i) const { return simd::load(q.q1[i]); }
-    F q2(int i) const { return simd::load(q.q2[i]); }
-    F pa() const { return simd::load(q.pa); }
-    F pt() const { return simd::load(q.pt); }
-    F st() const { return simd::load(q.st); }
-    F qn() const { return simd::load(q.qn); }
-    F c(int second, int k) const { return simd::load(q.c[second][k]); }
+struct LoadColumn {
+    simd::V operator()(const float *column) const { return simd::load(column); }
 };
+template <class L>
+using OneQuad = QuadFields<FlatQuad, Broadcast<L>>;
+using PackQuads = QuadFields<QuadPack, LoadColumn>;
 
 /// A ray against a FlatQuad, in lanes of L (FlatLanes) or for one ray (ScalarLanes), or a
 /// ray against a pack's quads (PackLanes), the same operations in the same order: the
@@ -1076,7 +1074,7 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
         const QuadPack &quads = quad_packs_[size_t(pack_quad_[size_t(&pack - packs_.data())])];
         const QuadRay<L> r(L::set1(ray.o.x), L::set1(ray.o.y), L::set1(ray.o.z), L::set1(ray.d.x), L::set1(ray.d.y),
                            L::set1(ray.d.z), L::set1(ray.tmin));
-        const QuadHit<L> h = quad_test(PackQuads{quads}, r);
+        const QuadHit<L> h = quad_test(PackQuads{quads, {}}, r);
         int mask = simd::mask(L::both(h.hit, L::lt(h.t, L::set1(tmax)))) & pack.quads;
         if (mask) {
             if (AnyHit) return true;
@@ -1464,7 +1462,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
             if (quad_at(i)) {
                 // A pair that makes a quad: quad_test(), then as below.
                 const QuadRay<ScalarLanes> qr(q_rox[k], q_roy[k], q_roz[k], q_rdx[k], q_rdy[k], q_rdz[k], tmin);
-                const QuadHit<ScalarLanes> qh = quad_test(OneQuad<ScalarLanes>{*quads[i / 2]}, qr);
+                const QuadHit<ScalarLanes> qh = quad_test(OneQuad<ScalarLanes>{*quads[i / 2], {}}, qr);
                 const bool hit = qh.hit && qh.t < tmax;
                 retrace = hit && qh.t == best_t ? 1.f : retrace;
                 const bool better = hit && qh.t < best_t;
@@ -1636,7 +1634,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
         // Triangles i and i + 1 as their quad: quad_test(), its hit kept as a triangle's.
         auto test_quad = [&](auto index) __attribute__((always_inline)) {
             constexpr int i = decltype(index)::value;
-            const QuadHit<L> qh = quad_test(OneQuad<L>{*quads[i / 2]}, qr);
+            const QuadHit<L> qh = quad_test(OneQuad<L>{*quads[i / 2], {}}, qr);
             const M hit = L::both(qh.hit, L::lt(qh.t, tmax));
             retrace = L::select(L::both(hit, L::eq(qh.t, best_t)), retrace, one);
             const M better = L::both(hit, L::lt(qh.t, best_t));
