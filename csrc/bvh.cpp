@@ -1045,6 +1045,16 @@ struct NodeTest {
     }
 };
 
+/// The lane of `mask` with the smallest t (of equal ones, the lowest).
+RBPT_INLINE int nearest_lane(int mask, const float t[BVHWidth]) {
+    int best = __builtin_ctz(mask);
+    for (mask &= mask - 1; mask; mask &= mask - 1) {
+        const int i = __builtin_ctz(mask);
+        if (t[i] < t[best]) best = i;
+    }
+    return best;
+}
+
 template <bool AnyHit>
 RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const RayPrecompPack &pc,
                                      float &tmax, Hit *hit) const {
@@ -1055,11 +1065,7 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
         int mask = intersect_triangles(pc, pack.tris, triangles, ray.tmin, tmax, t, u, v);
         if (mask) {
             if (AnyHit) return true;
-            int best = __builtin_ctz(mask);
-            for (mask &= mask - 1; mask; mask &= mask - 1) {
-                int i = __builtin_ctz(mask);
-                if (t[i] < t[best]) best = i;
-            }
+            const int best = nearest_lane(mask, t);
             found = true;
             tmax = t[best];
             hit->t = t[best];
@@ -1080,11 +1086,7 @@ RBPT_INLINE bool BVH::intersect_pack(const PrimPack &pack, const Ray &ray, const
             if (AnyHit) return true;
             alignas(32) float t[BVHWidth], u[BVHWidth], v[BVHWidth];
             simd::store(t, h.t), simd::store(u, h.u), simd::store(v, h.v);
-            int best = __builtin_ctz(mask);
-            for (mask &= mask - 1; mask; mask &= mask - 1) {
-                const int i = __builtin_ctz(mask);
-                if (t[i] < t[best]) best = i;
-            }
+            const int best = nearest_lane(mask, t);
             found = true;
             tmax = t[best];
             hit->t = t[best], hit->u = u[best], hit->v = v[best];
@@ -1457,20 +1459,27 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
         float retrace = q_retrace[k], best_t = q_best_t[k], best_u = q_best_u[k], best_v = q_best_v[k];
         float best_inv_det = Deferred ? q_best_inv_det[k] : 0.f;
         uint32_t best = q_best[k];
+        // A hit (`hit` 1) at t: the nearest so far where nearer (a tie leaves the order to
+        // intersect()'s traversal), with its barycentrics, its triangle and 1 / det.
+        auto keep = [&](float hit, float t, float u, float v, uint32_t id, float inv_det) __attribute__((always_inline)) {
+            float tie = t == best_t ? hit : 0.f;
+            retrace = tie != 0.f ? 1.f : retrace;
+            float better = t < best_t ? hit : 0.f;
+            best_t = better != 0.f ? t : best_t;
+            best_u = better != 0.f ? u : best_u;
+            best_v = better != 0.f ? v : best_v;
+            best = better != 0.f ? id : best;
+            if constexpr (Deferred) best_inv_det = better != 0.f ? inv_det : best_inv_det;
+        };
+        QuadRay<ScalarLanes> qr{};
+        if (quad_at(0) || quad_at(2)) qr = QuadRay<ScalarLanes>(q_rox[k], q_roy[k], q_roz[k], q_rdx[k], q_rdy[k], q_rdz[k], tmin);
 #pragma GCC unroll 4
         for (int i = I0; i < I1; ++i) {
             if (quad_at(i)) {
-                // A pair that makes a quad: quad_test(), then as below.
-                const QuadRay<ScalarLanes> qr(q_rox[k], q_roy[k], q_roz[k], q_rdx[k], q_rdy[k], q_rdz[k], tmin);
+                // A pair that makes a quad: quad_test(), its hit kept as a triangle's (a 1 / det
+                // of 0: its rounding bound is applied).
                 const QuadHit<ScalarLanes> qh = quad_test(OneQuad<ScalarLanes>{*quads[i / 2], {}}, qr);
-                const bool hit = qh.hit && qh.t < tmax;
-                retrace = hit && qh.t == best_t ? 1.f : retrace;
-                const bool better = hit && qh.t < best_t;
-                best_t = better ? qh.t : best_t;
-                best_u = better ? qh.u : best_u;
-                best_v = better ? qh.v : best_v;
-                best = better ? (qh.second ? ids[i + 1] : ids[i]) : best;
-                if constexpr (Deferred) best_inv_det = better ? 0.f : best_inv_det;
+                keep(qh.hit && qh.t < tmax ? 1.f : 0.f, qh.t, qh.u, qh.v, qh.second ? ids[i + 1] : ids[i], 0.f);
                 ++i;
                 continue;
             }
@@ -1498,15 +1507,7 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
             hit = t < tmax ? hit : 0.f;
             if constexpr (!Deferred) hit = t > t_error_bound(x, y, z, sz, U, Ve, We, inv_det) ? hit : 0.f;
             retrace = edge != 0.f ? 1.f : retrace;
-            // The nearest; a tie leaves the order to intersect()'s traversal.
-            float tie = t == best_t ? hit : 0.f;
-            retrace = tie != 0.f ? 1.f : retrace;
-            float better = t < best_t ? hit : 0.f;
-            best_t = better != 0.f ? t : best_t;
-            best_u = better != 0.f ? Ve * inv_det : best_u;
-            best_v = better != 0.f ? We * inv_det : best_v;
-            best = better != 0.f ? ids[i] : best;
-            if constexpr (Deferred) best_inv_det = better != 0.f ? inv_det : best_inv_det;
+            keep(hit, t, Ve * inv_det, We * inv_det, ids[i], inv_det);
         }
         q_retrace[k] = retrace, q_best_t[k] = best_t, q_best_u[k] = best_u, q_best_v[k] = best_v;
         q_best[k] = best;
@@ -1582,6 +1583,17 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
         if (G == 4 && (quads[0] || quads[1]))
             qr = QuadRay<L>(L::load(q_rox + k0), L::load(q_roy + k0), L::load(q_roz + k0), L::load(q_rdx + k0),
                             L::load(q_rdy + k0), L::load(q_rdz + k0), tmin);
+        // A hit of the lanes `hit` at t: the nearest so far where nearer (a tie leaves the
+        // order to intersect()'s traversal), with its barycentrics, its triangle and 1 / det.
+        auto keep = [&](M hit, F t, F u, F v, typename L::I id, F inv_det) __attribute__((always_inline)) {
+            retrace = L::select(L::both(hit, L::eq(t, best_t)), retrace, one);
+            const M better = L::both(hit, L::lt(t, best_t));
+            best_t = L::select(better, best_t, t);
+            best_u = L::select(better, best_u, u);
+            best_v = L::select(better, best_v, v);
+            best = L::select(better, best, id);
+            if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, inv_det);
+        };
         // Triangle i: intersect_triangles()'s operations.
         auto test_triangle = [&](auto index) __attribute__((always_inline)) {
             constexpr int i = decltype(index)::value;
@@ -1622,27 +1634,15 @@ void BVH::flat_triangles(const FlatTriangle *tris, uint32_t first, const FlatQua
                 hit = L::both(hit, L::gt(t, bound));
             }
             retrace = L::select(edge, retrace, one);
-            // The nearest; a tie leaves the order to intersect()'s traversal.
-            retrace = L::select(L::both(hit, L::eq(t, best_t)), retrace, one);
-            const M better = L::both(hit, L::lt(t, best_t));
-            best_t = L::select(better, best_t, t);
-            best_u = L::select(better, best_u, L::mul(Ve, inv_det));
-            best_v = L::select(better, best_v, L::mul(We, inv_det));
-            best = L::select(better, best, L::set1(ids[i]));
-            if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, inv_det);
+            keep(hit, t, L::mul(Ve, inv_det), L::mul(We, inv_det), L::set1(ids[i]), inv_det);
         };
-        // Triangles i and i + 1 as their quad: quad_test(), its hit kept as a triangle's.
+        // Triangles i and i + 1 as their quad: quad_test(), its hit kept as a triangle's (a
+        // 1 / det of 0: its rounding bound is applied).
         auto test_quad = [&](auto index) __attribute__((always_inline)) {
             constexpr int i = decltype(index)::value;
             const QuadHit<L> qh = quad_test(OneQuad<L>{*quads[i / 2], {}}, qr);
-            const M hit = L::both(qh.hit, L::lt(qh.t, tmax));
-            retrace = L::select(L::both(hit, L::eq(qh.t, best_t)), retrace, one);
-            const M better = L::both(hit, L::lt(qh.t, best_t));
-            best_t = L::select(better, best_t, qh.t);
-            best_u = L::select(better, best_u, qh.u);
-            best_v = L::select(better, best_v, qh.v);
-            best = L::select(better, best, L::select(qh.second, L::set1(ids[i]), L::set1(ids[i + 1])));
-            if constexpr (Deferred) best_inv_det = L::select(better, best_inv_det, zero);
+            keep(L::both(qh.hit, L::lt(qh.t, tmax)), qh.t, qh.u, qh.v,
+                 L::select(qh.second, L::set1(ids[i]), L::set1(ids[i + 1])), zero);
         };
         // Each half of the pass: its quad, or its two triangles.
         auto test_half = [&](auto index) __attribute__((always_inline)) {
@@ -1874,29 +1874,27 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
                   r.dx, r.dy, r.dz};
     // (The rounding bound is deferred beyond 16 triangles: cornell-box's 36, 468 -> 440 ms; the
     // cbox's 12 took 2% longer, the gathers of the check costing more than it saves there.)
-    // A pass's pairs that make quads, tested as such.
+    // Passes of four triangles, whose pairs that make quads are tested as such, then the last
+    // ones one by one.
     const size_t n_tris = flat_triangles_.size(), n_fours = n_tris / 4 * 4;
-    const FlatQuad *const no_quads[2] = {nullptr, nullptr};
-    auto pass_quads = [&](size_t i, const FlatQuad *quads[2]) {
-        for (int h = 0; h < 2; ++h) {
-            const int index = flat_half_quad_[i / 2 + size_t(h)];
-            quads[h] = index >= 0 ? &flat_quads_[size_t(index)] : nullptr;
-        }
-    };
-    const FlatQuad *quads[2];
-    if (n_tris > 16) {
+    auto passes = [&](auto deferred) {
+        constexpr bool D = decltype(deferred)::value;
+        const FlatQuad *quads[2] = {nullptr, nullptr};
         for (size_t i = 0; i < n_fours; i += 4) {
-            pass_quads(i, quads);
-            flat_triangles<4, true>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
+            for (int h = 0; h < 2; ++h) {
+                const int index = flat_half_quad_[i / 2 + size_t(h)];
+                quads[h] = index >= 0 ? &flat_quads_[size_t(index)] : nullptr;
+            }
+            flat_triangles<4, D>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
         }
-        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, true>(&flat_triangles_[i], uint32_t(i), no_quads, rays, n);
+        quads[0] = quads[1] = nullptr;
+        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, D>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
+    };
+    if (n_tris > 16) {
+        passes(std::true_type{});
         flat_rounding_check(rays, n);
     } else {
-        for (size_t i = 0; i < n_fours; i += 4) {
-            pass_quads(i, quads);
-            flat_triangles<4, false>(&flat_triangles_[i], uint32_t(i), quads, rays, n);
-        }
-        for (size_t i = n_fours; i < n_tris; ++i) flat_triangles<1, false>(&flat_triangles_[i], uint32_t(i), no_quads, rays, n);
+        passes(std::false_type{});
     }
     // Each sphere against the rays whose line passes near it (a generous float test; the
     // hit itself is intersect_sphere()'s, in double, for those rays in lanes). Its margin
