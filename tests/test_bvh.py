@@ -17,12 +17,16 @@ def _mesh_scene(mesh_dict):
     return tr.load_dict({"type": "scene", "m": mesh_dict})
 
 
-def _brute_force(positions, faces, o, d):
-    """Nearest hit distance per ray by testing every triangle (float64 Moller-Trumbore)."""
-    p0, p1, p2 = (positions[faces[:, k]].astype(np.float64) for k in range(3))
-    e1, e2 = p1 - p0, p2 - p0
-    t_best = np.full(len(o), np.inf)
-    for i in range(len(o)):
+def _brute_force_hits(tris, o, d):
+    """Every ray against every triangle (tris: (T, 3, 3) vertices; float64 Moller-Trumbore):
+    per ray the nearest hit's distance (inf: none), triangle, barycentrics u and v (the
+    weights of its vertices 1 and 2), and the second nearest hit's distance."""
+    p0 = tris[:, 0].astype(np.float64)
+    e1, e2 = tris[:, 1] - p0, tris[:, 2] - p0
+    n = len(o)
+    t_best, second, u_best, v_best = np.full(n, np.inf), np.full(n, np.inf), np.zeros(n), np.zeros(n)
+    best = np.zeros(n, dtype=np.int64)
+    for i in range(n):
         pv = np.cross(d[i], e2)
         det = np.einsum("ij,ij->i", e1, pv)
         ok = np.abs(det) > 1e-12
@@ -32,10 +36,17 @@ def _brute_force(positions, faces, o, d):
         qv = np.cross(tv, e1)
         v = (qv @ d[i]) * inv
         t = np.einsum("ij,ij->i", e2, qv) * inv
-        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-        if hit.any():
-            t_best[i] = t[hit].min()
-    return t_best
+        t = np.where(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0), t, np.inf)
+        j = int(t.argmin())
+        t_best[i], best[i], u_best[i], v_best[i] = t[j], j, u[j], v[j]
+        if len(t) > 1:
+            second[i] = np.partition(t, 1)[1]
+    return t_best, best, u_best, v_best, second
+
+
+def _brute_force(positions, faces, o, d):
+    """Nearest hit distance per ray by testing every triangle (float64 Moller-Trumbore)."""
+    return _brute_force_hits(positions[faces].astype(np.float64), o, d)[0]
 
 
 def test01_bvh_matches_brute_force_on_the_bunny(shared):
@@ -659,32 +670,18 @@ def test15_parallelograms_are_tested_as_quads(tmp_path):
     t, prim, u, v = (x.numpy() for x in lanes)
     # Brute force over the triangles, in float64 from the rays as given.
     o64, d64 = rays[0].double().numpy(), rays[1].double().numpy()
-    p0, e1, e2 = tris[:, 0], tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
-    pv = np.cross(d64[:, None], e2[None])
-    det = np.einsum("tj,ntj->nt", e1, pv)
-    tv = o64[:, None] - p0[None]
-    bu = np.einsum("ntj,ntj->nt", tv, pv) / det
-    qv = np.cross(tv, e1[None])
-    bv = np.einsum("ntj,nj->nt", qv, d64) / det
-    bt = np.einsum("tj,ntj->nt", e2, qv) / det
-    inside = (bu >= 0) & (bv >= 0) & (bu + bv <= 1) & (bt > 1e-6)
-    bt = np.where(inside, bt, np.inf)
-    best = bt.argmin(axis=1)
-    t_ref = bt[np.arange(n), best]
+    t_ref, best, bu_best, bv_best, second = _brute_force_hits(tris, o64, d64)
     hit = np.isfinite(t_ref)
     assert hit.sum() > 3000
     np.testing.assert_array_equal(prim >= 0, hit)
     # (Within a few roundings of the scene's scale along the triangle's normal: a grazing
     # ray's t moves far along the plane.)
-    normal = np.cross(e1, e2)
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     cos = np.abs(np.einsum("nj,nj->n", d64, normal[best]))
     np.testing.assert_array_less(np.abs(t - t_ref)[hit] * cos[hit], 1e-6 * (1 + t_ref[hit]))
     # Away from every edge (and the other hits), the same triangle and barycentrics.
-    k = np.arange(n)
-    bu_best, bv_best = bu[k, best], bv[k, best]
     margin = np.minimum(np.minimum(bu_best, bv_best), 1 - bu_best - bv_best)
-    second = np.sort(bt, axis=1)[:, 1]
     clear = hit & (margin > 1e-4) & (second > t_ref * (1 + 1e-4))
     assert clear.sum() > 2500
     np.testing.assert_array_equal(prim[clear], best[clear])
