@@ -2,6 +2,7 @@
 
 #include "wavefront.h"
 
+#include <array>
 #include <atomic>
 #include <cassert>
 #include <mutex>
@@ -924,8 +925,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // dL . (L - L_before) / rho into what it read, each emission of a differentiated
         // radiance dL . C / Le, each GGX conductor's vertex of a differentiated roughness
         // dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)); the tape re-traces the
-        // paths that read those parameters otherwise, or where rho or Le has a zero channel
-        // (the quotient fails).
+        // paths that read those parameters otherwise, or where Le or a dielectric's rho has
+        // a zero channel (the quotient fails; the other inputs' zero channels are taken as 1
+        // in the throughput, see WavefrontVertex::unit).
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
         ParamReadLog log;
         log.watched = watched.data();
@@ -936,6 +938,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         std::vector<Vec2> positions(Chunk);
         std::vector<RGB<float>> radiance(Chunk);
         WavefrontRecord record;
+        std::vector<std::array<int, 6>> zeros(Chunk);
         int n_batch = 0;
         if constexpr (std::is_same_v<T, float>) {
             if (wavefront) {
@@ -947,9 +950,24 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             if constexpr (std::is_same_v<T, float>) {
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch.data(), n_batch, positions.data(),
                                 radiance.data(), &record);
-                for (const WavefrontVertex &v : record.vertices)
-                    for (int c = 0; c < 3; ++c)
-                        if (v.seq >= 0 && v.kind != WavefrontVertex::Roughness && v.value[c] == 0.f) record.tape[size_t(v.seq)] = 1;
+                // Each sample's first two records per channel whose rho was taken as 1 there
+                // (WavefrontVertex::unit): zeros[k][2 c], zeros[k][2 c + 1], -1 for none.
+                bool any_unit = false;
+                for (int k = 0; k < n_batch; ++k) zeros[size_t(k)].fill(-1);
+                for (size_t i = 0; i < record.vertices.size(); ++i) {
+                    const WavefrontVertex &v = record.vertices[i];
+                    for (int c = 0; c < 3; ++c) {
+                        if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
+                        if (!v.unit) {
+                            record.tape[size_t(v.seq)] = 1;
+                            continue;
+                        }
+                        int &first = zeros[size_t(v.seq)][size_t(2 * c)], &second = zeros[size_t(v.seq)][size_t(2 * c + 1)];
+                        if (first < 0) first = int(i);
+                        else if (second < 0) second = int(i);
+                        any_unit = true;
+                    }
+                }
                 for (int k = 0; k < n_batch; ++k) {
                     lane_paths += record.tape[size_t(k)] ? 0 : 1;
                     if (record.tape[size_t(k)]) {
@@ -961,18 +979,38 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                         record.tape[size_t(k)] = 1;  // (no deposits)
                     }
                 }
-                for (const WavefrontVertex &v : record.vertices) {
+                for (size_t i = 0; i < record.vertices.size(); ++i) {
+                    const WavefrontVertex &v = record.vertices[i];
                     if (v.seq < 0 || record.tape[size_t(v.seq)]) continue;
                     const RGB<float> &L = radiance[v.seq];
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];
                     for (int c = 0; c < 3; ++c) {
+                        // The path's radiance where this record's terms end: at its end, or in a
+                        // channel whose rho was taken as 1 (WavefrontVertex::unit), at the first
+                        // such record (the true radiance's end), and for that record at the
+                        // second; a record after the first gathers nothing there.
+                        double end = double(L[c]);
+                        if (any_unit) {
+                            const std::array<int, 6> &z = zeros[size_t(v.seq)];
+                            const int first = z[size_t(2 * c)], second = z[size_t(2 * c + 1)];
+                            if (first >= 0 && int(i) > first) {
+                                g[c] = 0.0;
+                                continue;
+                            }
+                            if (first == int(i)) {
+                                end = second >= 0 ? double(record.vertices[size_t(second)].gathered[c]) : end;
+                                g[c] = double(dL[c]) * (end - double(v.gathered[c]));
+                                continue;
+                            }
+                            if (first >= 0) end = double(record.vertices[size_t(first)].gathered[c]);
+                        }
                         if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
-                            double C = double(v.value[c]), rest = double(L[c]) - double(v.gathered[c]) - C;
+                            double C = double(v.value[c]), rest = end - double(v.gathered[c]) - C;
                             g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
                             continue;
                         }
-                        double C = v.kind == WavefrontVertex::Input ? double(L[c]) - double(v.gathered[c])
+                        double C = v.kind == WavefrontVertex::Input ? end - double(v.gathered[c])
                                                                     : double(v.gathered[c]);
                         g[c] = double(dL[c]) * C / double(v.value[c]);
                     }

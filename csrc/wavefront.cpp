@@ -50,7 +50,10 @@ void exclude_watched_inputs(WavefrontScene &ws, const Scene &scene, const char *
         if (excluded[size_t(ws.prim_material[p])]) ws.prim_quick[p] = 0;
     auto gone = [&](const WavefrontScene::BitmapLookup &bm) { return excluded[size_t(bm.material)] != 0; };
     ws.bitmaps.erase(std::remove_if(ws.bitmaps.begin(), ws.bitmaps.end(), gone), ws.bitmaps.end());
-    for (WavefrontScene::BitmapLookup &bm : ws.bitmaps) bm.record = recorded[size_t(bm.material)] != 0;
+    for (WavefrontScene::BitmapLookup &bm : ws.bitmaps) {
+        bm.record = recorded[size_t(bm.material)] != 0;
+        bm.lane = ws.materials[size_t(bm.material)].lane;
+    }
     ws.quick_watched = watched;
 }
 
@@ -1568,6 +1571,25 @@ RBPT_INLINE void wrap_pair_lanes(int i, int n, int &w0, int &w1) {
 /// differentiates the bitmap), each lookup is kept as the WavefrontVertex the shade stage's
 /// own code keeps: the radiance before the vertex, the value, and the read (the four texels'
 /// offsets and weights, as Params::bilinear logs them).
+
+/// A recorded input rho of lane k (WavefrontVertex `v`, Input) whose channels include zeros:
+/// those channels taken as 1 in the path's throughput (WavefrontVertex::unit), the roulette
+/// throughput as path_li's roulette_factor has it: zero in those channels, or, where every
+/// channel is zero, the factor 1, which the diffuse weight rho (now 1) is. A dielectric's
+/// rho (whose branch's record may go unused) and a mirror's or rough conductor's of three
+/// zero channels (whose weights hold other factors) are left as they are: render_bwd gives
+/// their samples to the tape.
+void unit_zero_inputs(Batch &b, int k, WavefrontVertex &v, WavefrontScene::Lane lane) {
+    const int zeros = (v.value[0] == 0.f) + (v.value[1] == 0.f) + (v.value[2] == 0.f);
+    if (zeros == 0 || lane == WavefrontScene::Glass || (zeros == 3 && lane != WavefrontScene::Diffuse)) return;
+    float *a[3] = {b.ar, b.ag, b.ab}, *rr[3] = {b.rr_r, b.rr_g, b.rr_b};
+    for (int c = 0; c < 3; ++c) {
+        if (v.value[c] != 0.f) continue;
+        a[c][k] = 1.f;
+        if (zeros < 3) rr[c][k] = 0.f;
+    }
+    v.unit = true;
+}
 template <WrapMode Wrap, bool Record>
 void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, WavefrontRecord *record) {
     constexpr int B = WavefrontBatch;
@@ -1627,6 +1649,7 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, Wavef
         for (int i = 0; i < 4; ++i) read.offset[i] = read_t[i][j], read.weight[i] = read_w[i][j];
         record->vertices.push_back({b.seq[k], WavefrontVertex::Input, {b.Lr[k], b.Lg[k], b.Lb[k]}, {ar[j], ag[j], ab[j]}, read});
         b.record_reflect[k] = int(record->vertices.size()) - 1;
+        unit_zero_inputs(b, k, record->vertices.back(), WavefrontScene::Lane(bm.lane));
     }
 }
 
@@ -2025,6 +2048,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 return int(record->vertices.size()) - 1;
             };
             b.record_reflect[k] = keep(reads_a, a);
+            if (b.record_reflect[k] >= 0) unit_zero_inputs(b, k, record->vertices.back(), lane);
             b.record_refract[k] = -1;
             if (in.t) {
                 const int reads_t = log ? log->count : 0;

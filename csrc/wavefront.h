@@ -101,6 +101,7 @@ struct WavefrontScene {
         bool has_to_uv;
         float to_uv[2][3];
         bool record = false;
+        int lane = 0;  ///< with `record`: its material's Lane (unit_zero_inputs)
     };
     std::vector<BitmapLookup> bitmaps;
     /// Per primitive (triangles, then Geometry::analytic): its material, and whether the shade
@@ -209,6 +210,15 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// as one factor common to the channels: with C_e the emitter sample's contribution,
 /// dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s), dlog = d log f / d alpha
 /// (RoughConductorBSDF::dlog_dalpha).
+///
+/// A zero channel of rho (a reflectance clamped to 0 in a fit) would make the quotient 0 / 0.
+/// There the lanes take that channel of rho as 1 in the path's throughput (`unit`), but not
+/// in its roulette throughput, which sees what path_li's roulette_factor sees (so the paths
+/// are the tape's): the radiance the path then gathers in that channel after the vertex is
+/// dL/drho's, up to the channel's next such vertex (beyond it every term holds rho twice,
+/// whose derivative at 0 is 0), and render_bwd takes the true radiance of every other record
+/// from the radiance at the channel's first such vertex (the path's true radiance in that
+/// channel ends there).
 struct WavefrontVertex {
     /// Emission: `gathered` is C, `value` Le; Input: `gathered` is L_before, `value` rho;
     /// Roughness: `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s.
@@ -219,6 +229,9 @@ struct WavefrontVertex {
     float value[3];     ///< the input (rho), or Le
     ParamRead read;     ///< the differentiated parameter it came from
     float dlog[2] = {0.f, 0.f};
+    /// Input: its zero channels were taken as 1 in the path's throughput (unit_zero_inputs),
+    /// so the path's later radiance in those channels is what multiplies rho there.
+    bool unit = false;
 };
 struct WavefrontRecord {
     std::vector<WavefrontVertex> vertices;

@@ -165,21 +165,16 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
         scale = float(tape_grads[k].abs().max())
         assert scale > 0, k
         torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * scale, msg=k)
-    # A reflectance and a radiance with a zero channel: their paths go to the tape (the
-    # quotient fails), which still gives that channel's derivative (the whole pass, for the
-    # radiance: see test10).
+    # A reflectance with a zero channel (a fit's clamp): the quotient would be 0 / 0; the
+    # lanes take that channel as 1 in the throughput (test27), and still give the tape's
+    # gradients, that channel's derivative included. (A radiance with a zero channel takes
+    # the tape: see test10.)
     monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "1")
     with torch.no_grad():
         scene.params["side.bsdf.reflectance.value"].copy_(torch.tensor([0.2, 0.0, 0.3]))
-    keys = DIFFUSE_KEYS
-    lanes_grads, lanes, taped = backward(scene, keys)
-    assert lanes > 0 and taped > 0 and lanes + taped == 21 * 13 * 8
-    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
-    tape_grads, _, _ = backward(scene, keys)
-    assert float(tape_grads["side.bsdf.reflectance.value"][1].abs()) > 0
-    for k in keys:
-        torch.testing.assert_close(lanes_grads[k], tape_grads[k], rtol=1e-4,
-                                   atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
+    assert_lanes_give_the_tapes_gradients(scene, DIFFUSE_KEYS, monkeypatch)
+    grads, _, _ = backward(scene, DIFFUSE_KEYS)
+    assert float(grads["side.bsdf.reflectance.value"][1].abs()) > 0
 
 
 @pytest.mark.parametrize("key", ["panel.emitter.radiance.value", "beckmann.bsdf.alpha.value", "shiny.bsdf.alpha",
@@ -794,3 +789,68 @@ def test26_tiles_share_a_chunk_of_samples(tmp_path, monkeypatch, integrator):
             scalar = tr.render(scene, spp=spp, seed=6)
         assert float(scalar.mean()) > 0.01
         assert torch.equal(one, scalar) and torch.equal(two, scalar), spp
+
+
+def test27_zero_channels_of_inputs_in_lanes(tmp_path, monkeypatch):
+    # A reflectance clamped to 0 in a channel (a fit's clamp) would make the lanes' quotient
+    # dL . (L - L_before) / rho 0 / 0: they take that channel of rho as 1 in the path's
+    # throughput (not in its roulette throughput, so the paths are the tape's), which then
+    # gathers dL/drho there up to the channel's next such vertex, and every other record's
+    # terms end at the first. Diffuse reflectances (constants the paths meet again and again,
+    # a bitmap), a mirror's and a GGX conductor's specular reflectance (its roughness
+    # differentiated at the same vertices), radiances gathered after them: in lanes, with the
+    # tape's gradients, zero channels included; a dielectric's zero channel takes the tape
+    # for the paths that meet it.
+    texels = np.random.default_rng(5).uniform(0.1, 0.9, (4, 6, 3)).astype(np.float32)
+    texels[..., 1] = 0.0
+    tr.write_image(tmp_path / "z.exr", torch.from_numpy(texels))
+    d = room_dict(
+        tmp_path, {"max_depth": 8},
+        mat={"type": "rectangle", "to_world": tr.Transform.translate([0.2, 0.01, 0.4]).rotate([1, 0, 0], -90).scale(0.5),
+             "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "filename": str(tmp_path / "z.exr")}}},
+        mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, -0.2]),
+                "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.0, 0.7]}}},
+        metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
+               "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
+                        "specular_reflectance": {"type": "rgb", "value": [0.0, 0.6, 0.3]}}})
+    d["floor"]["bsdf"]["reflectance"]["value"] = [0.8, 0.0, 0.5]
+    d["side"]["bsdf"]["reflectance"]["value"] = [0.0, 0.7, 0.3]
+    scene = tr.load_dict(d)
+    keys = ["floor.bsdf.reflectance.value", "side.bsdf.reflectance.value", "mat.bsdf.reflectance.data",
+            "mirror.bsdf.specular_reflectance.value", "metal.bsdf.specular_reflectance.value",
+            "metal.bsdf.alpha.value", "quad.emitter.radiance.value", "panel.emitter.radiance.value"]
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+    grads, _, _ = backward(scene, keys, spp=16)
+    for key, channel in [("floor.bsdf.reflectance.value", 1), ("side.bsdf.reflectance.value", 0),
+                         ("mirror.bsdf.specular_reflectance.value", 1), ("metal.bsdf.specular_reflectance.value", 0)]:
+        assert float(grads[key][channel].abs()) > 0, key
+    assert float(grads["mat.bsdf.reflectance.data"][..., 1].abs().sum()) > 0
+
+    # A diffuse reflectance zero in every channel: its weight (rho, taken as 1) is the factor
+    # 1 that path_li's roulette sees there, so its paths stay in lanes; a mirror's takes the
+    # tape (its roulette factor is not its weight).
+    with torch.no_grad():
+        scene.params["side.bsdf.reflectance.value"].zero_()
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+    assert float(backward(scene, keys, spp=16)[0]["side.bsdf.reflectance.value"].abs().min()) > 0
+    with torch.no_grad():
+        scene.params["mirror.bsdf.specular_reflectance.value"].zero_()
+    grads, lanes, taped = backward(scene, keys, spp=16)
+    assert lanes > 0 and taped > 0
+    with monkeypatch.context() as m:
+        m.setenv("TORCH_RBPT_WAVEFRONT", "0")
+        tape_grads, _, _ = backward(scene, keys, spp=16)
+    for k in keys:
+        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
+
+    d["glass"] = {"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.1, 0.45, 0.6]),
+                  "bsdf": {"type": "dielectric", "int_ior": 1.5,
+                           "specular_reflectance": {"type": "rgb", "value": [0.9, 0.0, 0.8]}}}
+    scene = tr.load_dict(d)
+    keys = ["glass.bsdf.specular_reflectance.value", "floor.bsdf.reflectance.value"]
+    grads, lanes, taped = backward(scene, keys, spp=16)
+    assert lanes > 0 and taped > 0 and lanes + taped == 21 * 13 * 16
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "0")
+    tape_grads, _, _ = backward(scene, keys, spp=16)
+    for k in keys:
+        torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
