@@ -1563,15 +1563,6 @@ RBPT_INLINE void wrap_pair_lanes(int i, int n, int &w0, int &w1) {
     }
 }
 
-/// The lookups of bitmap `bm` for the lanes [0, n) of its material that the vector stage
-/// shades (shade 1): eval_bitmap()'s bilinear lookup and Params::gather()'s sum, operation
-/// for operation, in SIMD lanes over the list of those lanes (padded to whole vectors), into
-/// their reflectance a. A lane whose texel coordinates reach 2^22 in size, or are not finite,
-/// is left to the shade stage's own code (shade 0). With Record (the backward pass
-/// differentiates the bitmap), each lookup is kept as the WavefrontVertex the shade stage's
-/// own code keeps: the radiance before the vertex, the value, and the read (the four texels'
-/// offsets and weights, as Params::bilinear logs them).
-
 /// A recorded input rho of lane k (WavefrontVertex `v`, Input) whose channels include zeros:
 /// those channels taken as 1 in the path's throughput (WavefrontVertex::unit), the roulette
 /// throughput as path_li's roulette_factor has it: zero in those channels, or, where every
@@ -1590,6 +1581,16 @@ void unit_zero_inputs(Batch &b, int k, WavefrontVertex &v, WavefrontScene::Lane 
     }
     v.unit = true;
 }
+
+/// The lookups of bitmap `bm` for the lanes [0, n) of its material that the vector stage
+/// shades (shade 1): eval_bitmap()'s bilinear lookup and Params::gather()'s sum, operation
+/// for operation, in SIMD lanes over the list of those lanes (padded to whole vectors), into
+/// their reflectance a. A lane whose texel coordinates reach 2^22 in size, or are not finite,
+/// is left to the shade stage's own code (shade 0). With Record (the backward pass
+/// differentiates the bitmap), each lookup is kept as the WavefrontVertex the shade stage's
+/// own code keeps: the radiance before the vertex, the value, and the read (the four texels'
+/// offsets and weights, as Params::bilinear logs them), its zero channels taken as 1 as
+/// there (unit_zero_inputs).
 template <WrapMode Wrap, bool Record>
 void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, WavefrontRecord *record) {
     constexpr int B = WavefrontBatch;
