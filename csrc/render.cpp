@@ -283,6 +283,9 @@ public:
         for (int s = 0; s < r; ++s) splat(block, px, py, w, ks[s], &L[ks[s]]);
     }
 
+    /// The pixels tile (tx, ty)'s samples reach (its block's).
+    Rect reach(int tx, int ty) const { return block_rect(tx, ty); }
+
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
     /// comes (see the class). Distinct tiles may commit concurrently.
     void commit(int tx, int ty, Block &&block) {
@@ -811,11 +814,27 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     RowRange all{0, camera.crop_height};
     Tiles tiles = tiles_of(camera);
     Film weights(camera, tiles, all);
+    // The tiles whose samples reach a pixel of nonzero adjoint: the others' samples gather
+    // zero adjoints and trace nothing, and no such pixel's weight sum W_p holds their
+    // weights, so they are skipped whole (a sparse adjoint, as a one-hot one per pixel of a
+    // gradient image, then costs its own tiles, not the image's every sample).
+    std::vector<char> reaching(size_t(tiles.nx) * size_t(tiles.ny), 0);
+    for (int ty = 0; ty < tiles.ny; ++ty) {
+        for (int tx = 0; tx < tiles.nx; ++tx) {
+            const Rect r = weights.reach(tx, ty);
+            char any = 0;
+            for (int y = r.y0; y < r.y1 && !any; ++y)
+                for (int x = r.x0; x < r.x1 && !any; ++x)
+                    for (int c = 0; c < 3; ++c) any |= adjoint[3 * (size_t(y) * size_t(camera.crop_width) + size_t(x)) + size_t(c)] != T(0);
+            reaching[size_t(tiles.index(tx, ty))] = any;
+        }
+    }
     const bool independent = camera.sampler.type == SamplerType::Independent;
     // (The independent sampler's positions a chunk at a time, and their filter weights.)
     constexpr int Chunk = SplatWeights::Batch;
     for_each_tile(tiles, all, pool, [&](int tx, int ty) {
         Film::Block block = weights.block(tx, ty);
+        if (!reaching[size_t(tiles.index(tx, ty))]) return weights.commit(tx, ty, std::move(block));
         uint64_t stream[Chunk], index[Chunk];
         float u0[Chunk], u1[Chunk];
         SplatWeights chunk(camera.filter);
@@ -1043,6 +1062,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         int seeds_of = -1;
         for (int64_t unit = w; unit < n_units; unit += n_workers) {
             int tile = int(unit / req.spp), s = int(unit % req.spp);
+            if (!reaching[size_t(tile)]) continue;
             if (tile != seeds_of) {
                 tile_seeds.clear(), tile_streams.clear();
                 for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx, [&](int, int, uint64_t key) {
