@@ -884,18 +884,27 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     // not linear in its inputs.
     std::optional<WavefrontScene> wavefront;
     std::vector<char> watched(n_params, 0);
+    // The values the lanes read: a differentiated radiance's zero channels taken as 1
+    // (WavefrontRecord::unit_radiance; the wavefront's emitter samples would skip an emitter
+    // of zero radiance, and a zero channel's quotient C / Le fails).
+    Params<RGB<T>> lane_values = values;
+    std::vector<std::array<float, 3>> unit_radiance_values(n_params);
+    std::vector<uint8_t> unit_radiance(n_params, 0);
     if constexpr (std::is_same_v<T, float>) {
-        bool lanes = true;
         for (size_t p = 0; p < n_params; ++p) watched[p] = grads[p] != nullptr;
-        // A radiance with a zero channel: the wavefront's emitter samples skip that emitter
-        // (its sample weight is null), where the tape still traces their shadow rays for the
-        // derivative.
         for (const Emitter &e : scene.emitters) {
-            if (e.radiance < 0 || !watched[size_t(e.radiance)]) continue;
-            RGB<float> Le = Params<RGB<float>>::value_of(values.data[size_t(e.radiance)], values.numel[size_t(e.radiance)]);
-            lanes = lanes && Le[0] != 0.f && Le[1] != 0.f && Le[2] != 0.f;
+            const size_t p = size_t(e.radiance);
+            if (e.radiance < 0 || !watched[p] || unit_radiance[p] || values.numel[p] > 3) continue;
+            std::array<float, 3> &v = unit_radiance_values[p];
+            for (int64_t c = 0; c < values.numel[p]; ++c) v[size_t(c)] = values.data[p][c];
+            for (int64_t c = 0; c < values.numel[p]; ++c) {
+                if (v[size_t(c)] != 0.f) continue;
+                v[size_t(c)] = 1.f;
+                unit_radiance[p] |= uint8_t(values.numel[p] == 1 ? 7 : 1 << c);
+            }
+            if (unit_radiance[p]) lane_values.data[p] = v.data();
         }
-        if (lanes) wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, values), cfg, camera);
+        wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, lane_values), cfg, camera);
         // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
         // path that reaches them.)
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
@@ -944,9 +953,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // dL . (L - L_before) / rho into what it read, each emission of a differentiated
         // radiance dL . C / Le, each GGX conductor's vertex of a differentiated roughness
         // dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)); the tape re-traces the
-        // paths that read those parameters otherwise, or where Le or a dielectric's rho has
-        // a zero channel (the quotient fails; the other inputs' zero channels are taken as 1
-        // in the throughput, see WavefrontVertex::unit).
+        // paths that read those parameters otherwise, or where a dielectric's rho has a zero
+        // channel (the quotient fails; the other inputs' zero channels are taken as 1 in the
+        // throughput, and a radiance's in the lanes' values: see WavefrontVertex::unit).
         std::optional<RenderContext<RGB<float>>> lanes_ctx;
         ParamReadLog log;
         log.watched = watched.data();
@@ -958,10 +967,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         std::vector<RGB<float>> radiance(Chunk);
         WavefrontRecord record;
         std::vector<std::array<int, 6>> zeros(Chunk);
+        std::vector<RGB<double>> fake, fake_total(Chunk);
         int n_batch = 0;
         if constexpr (std::is_same_v<T, float>) {
             if (wavefront) {
-                lanes_ctx.emplace(scene, values);
+                lanes_ctx.emplace(scene, lane_values);
+                record.unit_radiance = unit_radiance;
                 lanes_ctx->params.log = &log;
             }
         }
@@ -970,15 +981,26 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 trace_wavefront(*lanes_ctx, *wavefront, cfg, camera, batch.data(), n_batch, positions.data(),
                                 radiance.data(), &record);
                 // Each sample's first two records per channel whose rho was taken as 1 there
-                // (WavefrontVertex::unit): zeros[k][2 c], zeros[k][2 c + 1], -1 for none.
-                bool any_unit = false;
-                for (int k = 0; k < n_batch; ++k) zeros[size_t(k)].fill(-1);
+                // (WavefrontVertex::unit, Input): zeros[k][2 c], zeros[k][2 c + 1], -1 for
+                // none. And the terms of the emission records whose Le the lanes read as 1 in
+                // a channel (unit, Emission), in the path's radiance but truly zero: their sum
+                // before each record (fake[i]) and over the path (fake_total[k]).
+                bool any_unit = false, any_fake = false;
+                for (int k = 0; k < n_batch; ++k) zeros[size_t(k)].fill(-1), fake_total[size_t(k)] = RGB<double>();
+                if (fake.size() < record.vertices.size()) fake.resize(record.vertices.size());
                 for (size_t i = 0; i < record.vertices.size(); ++i) {
                     const WavefrontVertex &v = record.vertices[i];
+                    if (v.seq < 0) continue;
+                    fake[i] = fake_total[size_t(v.seq)];
                     for (int c = 0; c < 3; ++c) {
-                        if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
+                        if (v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
                         if (!v.unit) {
                             record.tape[size_t(v.seq)] = 1;
+                            continue;
+                        }
+                        if (v.kind == WavefrontVertex::Emission) {
+                            fake_total[size_t(v.seq)][c] += double(v.gathered[c]);
+                            any_fake = true;
                             continue;
                         }
                         int &first = zeros[size_t(v.seq)][size_t(2 * c)], &second = zeros[size_t(v.seq)][size_t(2 * c + 1)];
@@ -1005,11 +1027,18 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     const RGB<T> &dL = adjoints[v.seq];
                     double g[3];
                     for (int c = 0; c < 3; ++c) {
+                        // The path's true radiance before record j (an Input's or a Roughness's
+                        // L_before), without the emission terms the lanes gathered with Le read
+                        // as 1 where it is 0.
+                        auto before = [&](size_t j) {
+                            const double gathered = double(record.vertices[j].gathered[c]);
+                            return any_fake ? gathered - fake[j][c] : gathered;
+                        };
                         // The path's radiance where this record's terms end: at its end, or in a
                         // channel whose rho was taken as 1 (WavefrontVertex::unit), at the first
                         // such record (the true radiance's end), and for that record at the
                         // second; a record after the first gathers nothing there.
-                        double end = double(L[c]);
+                        double end = any_fake ? double(L[c]) - fake_total[size_t(v.seq)][c] : double(L[c]);
                         if (any_unit) {
                             const std::array<int, 6> &z = zeros[size_t(v.seq)];
                             const int first = z[size_t(2 * c)], second = z[size_t(2 * c + 1)];
@@ -1018,20 +1047,24 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                                 continue;
                             }
                             if (first == int(i)) {
-                                end = second >= 0 ? double(record.vertices[size_t(second)].gathered[c]) : end;
-                                g[c] = double(dL[c]) * (end - double(v.gathered[c]));
+                                end = second >= 0 ? before(size_t(second)) : end;
+                                g[c] = double(dL[c]) * (end - before(i));
                                 continue;
                             }
-                            if (first >= 0) end = double(record.vertices[size_t(first)].gathered[c]);
+                            if (first >= 0) end = before(size_t(first));
                         }
                         if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
-                            double C = double(v.value[c]), rest = end - double(v.gathered[c]) - C;
+                            double C = double(v.value[c]), rest = end - before(i) - C;
                             g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
                             continue;
                         }
-                        double C = v.kind == WavefrontVertex::Input ? end - double(v.gathered[c])
-                                                                    : double(v.gathered[c]);
-                        g[c] = double(dL[c]) * C / double(v.value[c]);
+                        if (v.kind == WavefrontVertex::Input) {
+                            g[c] = double(dL[c]) * (end - before(i)) / double(v.value[c]);
+                            continue;
+                        }
+                        // Emission: C / Le, or where the lanes read Le as 1, C itself (dC/dLe).
+                        const double Le = v.unit && v.value[c] == 0.f ? 1.0 : double(v.value[c]);
+                        g[c] = double(dL[c]) * double(v.gathered[c]) / Le;
                     }
                     double *grad = params.grad[size_t(v.read.param)];
                     for (int i = 0; i < v.read.n; ++i) {

@@ -1848,12 +1848,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
     int *const side_lane = buffers.side_lane;
     RoughLanes &ggx = buffers.ggx, &beckmann = buffers.beckmann;
+    // An emission record of radiance parameter p: its channels that the lanes read as 1 put
+    // back to their true 0 (WavefrontVertex::unit).
+    auto unit_radiance = [&](WavefrontVertex &v, int p) {
+        const int zero = record->unit_radiance.empty() ? 0 : record->unit_radiance[size_t(p)];
+        for (int c = 0; c < 3; ++c)
+            if (zero >> c & 1) v.value[c] = 0.f, v.unit = true;
+    };
     // The emission Le found by lane k's ray, where its radiance read a differentiated
     // parameter (the reads since `reads_before`): kept; returns the reads it accounts for.
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
         if (!log || log->count != reads_before + 1 || log->last.param != e.radiance) return 0;
         RGB<float> radiance = Params<RGB<float>>::value_of(ctx.params.data[size_t(e.radiance)], ctx.params.numel[size_t(e.radiance)]);
         record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {Le[0], Le[1], Le[2]}, {radiance[0], radiance[1], radiance[2]}, log->last});
+        unit_radiance(record->vertices.back(), e.radiance);
         return 1;
     };
     auto unexpected_reads = [&](int k, int reads_before, int expected) {
@@ -2169,8 +2177,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             if (!lit[k]) continue;
             const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
             if (b.record_rough[k] >= 0) {
+                // (The true C_e: zero in a radiance's channels that the lanes read as 1.)
                 float *C = record->vertices[size_t(b.record_rough[k])].value;
-                C[0] = b.cr[k], C[1] = b.cg[k], C[2] = b.cb[k];
+                const int zero = record->unit_radiance.empty() || light.radiance_param < 0 ? 0 : record->unit_radiance[size_t(light.radiance_param)];
+                C[0] = zero & 1 ? 0.f : b.cr[k], C[1] = zero & 2 ? 0.f : b.cg[k], C[2] = zero & 4 ? 0.f : b.cb[k];
             }
             if (log->watched[light.radiance_param]) {
                 // The emitter sample's contribution, for render_bwd's deposit.
@@ -2179,6 +2189,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
                 const Color3f &Le = light.radiance;
                 record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
+                unit_radiance(record->vertices.back(), light.radiance_param);
             }
         }
         // The rough samples left unevaluated, where their new ray enters an emitter's box.

@@ -231,10 +231,18 @@ struct WavefrontVertex {
     float dlog[2] = {0.f, 0.f};
     /// Input: its zero channels were taken as 1 in the path's throughput (unit_zero_inputs),
     /// so the path's later radiance in those channels is what multiplies rho there.
+    /// Emission: the zero channels of `value` (the true Le) were taken as 1 by the lanes
+    /// (WavefrontRecord::unit_radiance), so `gathered` there is dC/dLe, and it is in the
+    /// path's radiance though the true contribution is zero.
     bool unit = false;
 };
 struct WavefrontRecord {
     std::vector<WavefrontVertex> vertices;
+    /// Per parameter: the channels (bits) of a differentiated radiance that are zero and that
+    /// the lanes read as 1 (render_bwd sets it and the values the lanes read). Their
+    /// emission records then carry dC/dLe in those channels; render_bwd takes those terms
+    /// out of the path's radiance again.
+    std::vector<uint8_t> unit_radiance;
     /// Per sample: 1 where its path read a differentiated parameter in any other way (then
     /// the tape re-traces it: see render_bwd).
     std::vector<char> tape;

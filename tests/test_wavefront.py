@@ -177,15 +177,13 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
     assert float(grads["side.bsdf.reflectance.value"][1].abs()) > 0
 
 
-@pytest.mark.parametrize("key", ["panel.emitter.radiance.value", "beckmann.bsdf.alpha.value", "shiny.bsdf.alpha",
-                                 "shiny.bsdf.diffuse_reflectance.value"])
+@pytest.mark.parametrize("key", ["beckmann.bsdf.alpha.value", "shiny.bsdf.alpha", "shiny.bsdf.diffuse_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
     # Roughness other than a GGX conductor's (a Beckmann conductor's, whose visible normals
     # are sampled one path at a time, and roughplastic's) and the inputs of BSDFs other than
     # diffuse ones, mirrors and conductors (even roughplastic's diffuse reflectance) enter the
-    # path otherwise than as one factor of its throughput; a radiance with a zero channel
-    # is skipped by the wavefront's emitter samples: the whole backward pass takes the tape,
-    # whatever else is differentiated.
+    # path otherwise than as one factor of its throughput: the whole backward pass takes the
+    # tape, whatever else is differentiated.
     scene = room(tmp_path, {"max_depth": 5},
                  mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
                          "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
@@ -196,9 +194,6 @@ def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, k
                  shiny={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.02, 0.5]).rotate([1, 0, 0], -90).scale(0.3),
                         "bsdf": {"type": "roughplastic", "distribution": "ggx",
                                  "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}})
-    if key == "panel.emitter.radiance.value":
-        with torch.no_grad():
-            scene.params[key].copy_(torch.tensor([1.0, 0.0, 6.0]))
     keys = ["floor.bsdf.reflectance.value", key]
     assert all(k in scene._keys for k in keys), scene._keys
     grads, lanes, taped = backward(scene, keys)
@@ -854,3 +849,31 @@ def test27_zero_channels_of_inputs_in_lanes(tmp_path, monkeypatch):
     tape_grads, _, _ = backward(scene, keys, spp=16)
     for k in keys:
         torch.testing.assert_close(grads[k], tape_grads[k], rtol=1e-4, atol=1e-5 * float(tape_grads[k].abs().max()), msg=k)
+
+
+def test28_zero_channels_of_radiances_in_lanes(tmp_path, monkeypatch):
+    # A differentiated radiance with zero channels (a light fitted towards a colour, clamped
+    # at 0): the lanes read those channels as 1, so its emitter samples are taken (all three
+    # zero, the wavefront would skip them) and each emission record carries dC/dLe there;
+    # render_bwd takes those terms out of the path's radiance again before the other records'
+    # quotients (a reflectance's, a GGX roughness's, whose emitter sample's C_e is the true
+    # one). RGB radiances with one and with three zero channels, a scalar one at 0, beside a
+    # reflectance with a zero channel of its own: in lanes, with the tape's gradients.
+    extra = dict(metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
+                        "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}})
+    d = room_dict(tmp_path, {"max_depth": 6}, **extra)
+    d["quad"]["emitter"]["radiance"]["value"] = [6.0, 0.0, 4.0]
+    d["side"]["bsdf"]["reflectance"]["value"] = [0.5, 0.6, 0.0]
+    keys = ["quad.emitter.radiance.value", "panel.emitter.radiance.value", "strip.emitter.radiance.value",
+            "side.bsdf.reflectance.value", "floor.bsdf.reflectance.value", "metal.bsdf.alpha.value"]
+    scene = tr.load_dict(d)
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+    grads, _, _ = backward(scene, keys, spp=16)
+    assert float(grads["quad.emitter.radiance.value"][1].abs()) > 0
+    with torch.no_grad():
+        scene.params["panel.emitter.radiance.value"].zero_()
+        scene.params["strip.emitter.radiance.value"].zero_()
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+    grads, _, _ = backward(scene, keys, spp=16)
+    assert float(grads["panel.emitter.radiance.value"].abs().min()) > 0
+    assert float(grads["strip.emitter.radiance.value"].abs().min()) > 0
