@@ -877,3 +877,12 @@ def test28_zero_channels_of_radiances_in_lanes(tmp_path, monkeypatch):
     grads, _, _ = backward(scene, keys, spp=16)
     assert float(grads["panel.emitter.radiance.value"].abs().min()) > 0
     assert float(grads["strip.emitter.radiance.value"].abs().min()) > 0
+    # A point light's intensity (sampled aside) and an environment's radiance.
+    d = room_dict(tmp_path, {"max_depth": 5})
+    d["lamp"] = {"type": "point", "position": [0.3, 1.2, 0.4], "intensity": {"type": "rgb", "value": [3.0, 0.0, 2.0]}}
+    d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.0, 0.2, 0.3]}}
+    scene = tr.load_dict(d)
+    keys = ["lamp.intensity.value", "sky.radiance.value", "floor.bsdf.reflectance.value"]
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
+    grads, _, _ = backward(scene, keys, spp=16)
+    assert float(grads["lamp.intensity.value"][1].abs()) > 0 and float(grads["sky.radiance.value"][0].abs()) > 0
