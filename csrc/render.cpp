@@ -283,9 +283,6 @@ public:
         for (int s = 0; s < r; ++s) splat(block, px, py, w, ks[s], &L[ks[s]]);
     }
 
-    /// The pixels tile (tx, ty)'s samples reach (its block's).
-    Rect reach(int tx, int ty) const { return block_rect(tx, ty); }
-
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
     /// comes (see the class). Distinct tiles may commit concurrently.
     void commit(int tx, int ty, Block &&block) {
@@ -814,21 +811,30 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     RowRange all{0, camera.crop_height};
     Tiles tiles = tiles_of(camera);
     Film weights(camera, tiles, all);
-    // The tiles whose samples reach a pixel of nonzero adjoint: the others' samples gather
-    // zero adjoints and trace nothing, and no such pixel's weight sum W_p holds their
-    // weights, so they are skipped whole (a sparse adjoint, as a one-hot one per pixel of a
-    // gradient image, then costs its own tiles, not the image's every sample).
+    // The pixels whose samples reach a pixel of nonzero adjoint (within the filter's border of
+    // one), and the tiles that hold one: the others' samples gather zero adjoints and trace
+    // nothing, and no such pixel's weight sum W_p holds their weights, so they are skipped
+    // (a sparse adjoint, as a one-hot one per pixel of a gradient image, then costs the
+    // pixels around it, not the image's every sample).
+    const int width = camera.crop_width, height = camera.crop_height, border = camera.filter.border();
+    std::vector<char> nonzero(size_t(width) * size_t(height), 0), across(nonzero.size(), 0), reaches(nonzero.size(), 0);
+    for (size_t i = 0; i < nonzero.size(); ++i)
+        nonzero[i] = adjoint[3 * i] != T(0) || adjoint[3 * i + 1] != T(0) || adjoint[3 * i + 2] != T(0);
+    for (int y = 0; y < height; ++y)
+        for (int x = 0; x < width; ++x)
+            for (int i = std::max(0, x - border); i <= std::min(width - 1, x + border); ++i)
+                across[size_t(y) * size_t(width) + size_t(x)] |= nonzero[size_t(y) * size_t(width) + size_t(i)];
+    for (int y = 0; y < height; ++y)
+        for (int x = 0; x < width; ++x)
+            for (int j = std::max(0, y - border); j <= std::min(height - 1, y + border); ++j)
+                reaches[size_t(y) * size_t(width) + size_t(x)] |= across[size_t(j) * size_t(width) + size_t(x)];
+    auto reaching_pixel = [&](int px, int py) {  // (film coordinates, as for_each_pixel_of_tile's)
+        return reaches[size_t(py - camera.crop_y) * size_t(width) + size_t(px - camera.crop_x)] != 0;
+    };
     std::vector<char> reaching(size_t(tiles.nx) * size_t(tiles.ny), 0);
-    for (int ty = 0; ty < tiles.ny; ++ty) {
-        for (int tx = 0; tx < tiles.nx; ++tx) {
-            const Rect r = weights.reach(tx, ty);
-            char any = 0;
-            for (int y = r.y0; y < r.y1 && !any; ++y)
-                for (int x = r.x0; x < r.x1 && !any; ++x)
-                    for (int c = 0; c < 3; ++c) any |= adjoint[3 * (size_t(y) * size_t(camera.crop_width) + size_t(x)) + size_t(c)] != T(0);
-            reaching[size_t(tiles.index(tx, ty))] = any;
-        }
-    }
+    for (int y = 0; y < height; ++y)
+        for (int x = 0; x < width; ++x)
+            reaching[size_t(tiles.index(x / tiles.size, y / tiles.size))] |= reaches[size_t(y) * size_t(width) + size_t(x)];
     const bool independent = camera.sampler.type == SamplerType::Independent;
     // (The independent sampler's positions a chunk at a time, and their filter weights.)
     constexpr int Chunk = SplatWeights::Batch;
@@ -839,6 +845,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         float u0[Chunk], u1[Chunk];
         SplatWeights chunk(camera.filter);
         for_each_pixel_of_tile(camera, tiles, all, tx, ty, [&](int px, int py, uint64_t key) {
+            if (!reaching_pixel(px, py)) return;
             PixelSeed seed(req.seed, key);
             for (int s0 = 0; independent && s0 < req.spp; s0 += Chunk) {
                 int n = std::min(Chunk, req.spp - s0);
@@ -1130,6 +1137,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             for_each_pixel_of_tile(camera, tiles, all, tile % tiles.nx, tile / tiles.nx,
                                    [&](int px, int py, uint64_t) {
                 const size_t i = pixel++;
+                if (!reaching_pixel(px, py)) return;
                 const PixelSeed &seed = tile_seeds[i];
                 if (lanes_ctx) {
                     RGB<T> dL = batched ? gather(px, py, tile_weights, int(i))

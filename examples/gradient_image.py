@@ -7,8 +7,8 @@ has its red wall on the right, the bundled Cornell box on the left). Forward mod
 Reverse mode gets one number per backward pass: each pixel is one call of
 `torch.autograd.grad(image, wall, grad_outputs=one_hot(p))` on a single forward render. That
 is cheap because the backward pass (radiative backpropagation) traces paths only from
-samples that reach a pixel of nonzero adjoint, and skips whole the tiles whose samples
-reach none, so a one-hot adjoint costs about `spp` paths and its tiles' sample positions;
+samples that reach a pixel of nonzero adjoint, and skips the pixels whose samples reach
+none, so a one-hot adjoint costs about `spp` paths and its neighbours' sample positions;
 the calls run on all cores, one pixel per core at a time. Both estimates use independent random numbers, so
 they differ by noise; the noise floor is the same statistic for two independent dual-number
 images. A replay check on a subset of pixels (backward re-tracing the dual render's own
@@ -18,7 +18,7 @@ Writes into out/gradient_image/: the scene (EXR, PNG), the reverse, dual and dif
 gradient images (single-channel EXR, colour-mapped PNG) and `gradient_image.png`, the
 figure (reverse, dual, their difference and the noise floor, with colour bars).
 
-    python examples/gradient_image.py           # 64 x 64, 1024 spp (about 45 s on 2 cores)
+    python examples/gradient_image.py           # 64 x 64, 1024 spp (about 20 s on 2 cores)
     python examples/gradient_image.py --smoke   # seconds, for tests
 """
 from __future__ import annotations

@@ -199,16 +199,20 @@ def test10_zero_adjoint_pixels_trace_nothing():
 
 
 
+@pytest.mark.parametrize("crop", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test10b_sparse_adjoints_skip_the_tiles_they_do_not_reach(dtype):
-    # The backward pass skips the tiles (16 x 16 pixels) whose samples reach no pixel of
-    # nonzero adjoint, their splats' weights included. The gradient is linear in the adjoint:
-    # the adjoint cut into its tiles' own pixels gives nine sparse passes, which must add up
-    # to the dense one; under a gaussian (samples reaching two pixels into the next tile) a
-    # skipped neighbour's samples, or their weights in a pixel's normalisation, would be
-    # missing from the sum. (float32 takes the lanes, float64 the tape.)
+def test10b_sparse_adjoints_skip_the_pixels_they_do_not_reach(dtype, crop):
+    # The backward pass skips the pixels (and whole tiles of 16 x 16) whose samples reach no
+    # pixel of nonzero adjoint, their splats' weights included. The gradient is linear in the
+    # adjoint: the adjoint cut into its tiles' own pixels gives nine sparse passes, which
+    # must add up to the dense one; under a gaussian (samples reaching two pixels into the
+    # next tile) a skipped neighbour's samples, or their weights in a pixel's normalisation,
+    # would be missing from the sum. Also in a crop window, whose pixels are not the film's.
+    # (float32 takes the lanes, float64 the tape.)
     d = glossy_box(res=40)
     d["sensor"]["film"]["rfilter"] = {"type": "gaussian"}
+    if crop:
+        d["sensor"]["film"].update(width=52, height=47, crop_offset_x=7, crop_offset_y=5, crop_width=40, crop_height=40)
     scene = tr.load_dict(d, dtype=dtype)
     keys = ["red.reflectance.value", "light.emitter.radiance.value"]
     params = scene.param_list()
