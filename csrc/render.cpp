@@ -993,20 +993,16 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 // a channel (unit, Emission), in the path's radiance but truly zero: their sum
                 // before each record (fake[i]) and over the path (fake_total[k]).
                 bool any_unit = false, any_fake = false;
-                for (int k = 0; k < n_batch; ++k) zeros[size_t(k)].fill(-1), fake_total[size_t(k)] = RGB<double>();
-                if (fake.size() < record.vertices.size()) fake.resize(record.vertices.size());
+                for (int k = 0; k < n_batch; ++k) zeros[size_t(k)].fill(-1);
                 for (size_t i = 0; i < record.vertices.size(); ++i) {
                     const WavefrontVertex &v = record.vertices[i];
-                    if (v.seq < 0) continue;
-                    fake[i] = fake_total[size_t(v.seq)];
                     for (int c = 0; c < 3; ++c) {
-                        if (v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
+                        if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
                         if (!v.unit) {
                             record.tape[size_t(v.seq)] = 1;
                             continue;
                         }
                         if (v.kind == WavefrontVertex::Emission) {
-                            fake_total[size_t(v.seq)][c] += double(v.gathered[c]);
                             any_fake = true;
                             continue;
                         }
@@ -1014,6 +1010,18 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                         if (first < 0) first = int(i);
                         else if (second < 0) second = int(i);
                         any_unit = true;
+                    }
+                }
+                if (any_fake) {
+                    for (int k = 0; k < n_batch; ++k) fake_total[size_t(k)] = RGB<double>();
+                    if (fake.size() < record.vertices.size()) fake.resize(record.vertices.size());
+                    for (size_t i = 0; i < record.vertices.size(); ++i) {
+                        const WavefrontVertex &v = record.vertices[i];
+                        if (v.seq < 0) continue;
+                        fake[i] = fake_total[size_t(v.seq)];
+                        if (v.kind != WavefrontVertex::Emission || !v.unit) continue;
+                        for (int c = 0; c < 3; ++c)
+                            if (v.value[c] == 0.f) fake_total[size_t(v.seq)][c] += double(v.gathered[c]);
                     }
                 }
                 for (int k = 0; k < n_batch; ++k) {
@@ -1027,63 +1035,71 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                         record.tape[size_t(k)] = 1;  // (no deposits)
                     }
                 }
-                for (size_t i = 0; i < record.vertices.size(); ++i) {
-                    const WavefrontVertex &v = record.vertices[i];
-                    if (v.seq < 0 || record.tape[size_t(v.seq)]) continue;
-                    const RGB<float> &L = radiance[v.seq];
-                    const RGB<T> &dL = adjoints[v.seq];
-                    double g[3];
-                    for (int c = 0; c < 3; ++c) {
-                        // The path's true radiance before record j (an Input's or a Roughness's
-                        // L_before), without the emission terms the lanes gathered with Le read
-                        // as 1 where it is 0.
-                        auto before = [&](size_t j) {
-                            const double gathered = double(record.vertices[j].gathered[c]);
-                            return any_fake ? gathered - fake[j][c] : gathered;
-                        };
-                        // The path's radiance where this record's terms end: at its end, or in a
-                        // channel whose rho was taken as 1 (WavefrontVertex::unit), at the first
-                        // such record (the true radiance's end), and for that record at the
-                        // second; a record after the first gathers nothing there.
-                        double end = any_fake ? double(L[c]) - fake_total[size_t(v.seq)][c] : double(L[c]);
-                        if (any_unit) {
-                            const std::array<int, 6> &z = zeros[size_t(v.seq)];
-                            const int first = z[size_t(2 * c)], second = z[size_t(2 * c + 1)];
-                            if (first >= 0 && int(i) > first) {
-                                g[c] = 0.0;
+                // The deposits, with the zero channels' bookkeeping only where a record needs it
+                // (Unit: a reflectance's, Fake: a radiance's).
+                auto deposit = [&](auto unit, auto fake_terms) {
+                    constexpr bool Unit = decltype(unit)::value, Fake = decltype(fake_terms)::value;
+                    for (size_t i = 0; i < record.vertices.size(); ++i) {
+                        const WavefrontVertex &v = record.vertices[i];
+                        if (v.seq < 0 || record.tape[size_t(v.seq)]) continue;
+                        const RGB<float> &L = radiance[v.seq];
+                        const RGB<T> &dL = adjoints[v.seq];
+                        double g[3];
+                        for (int c = 0; c < 3; ++c) {
+                            // The path's true radiance before record j (an Input's or a Roughness's
+                            // L_before), without the emission terms the lanes gathered with Le read
+                            // as 1 where it is 0.
+                            auto before = [&](size_t j) {
+                                const double gathered = double(record.vertices[j].gathered[c]);
+                                return Fake ? gathered - fake[j][c] : gathered;
+                            };
+                            // The path's radiance where this record's terms end: at its end, or in a
+                            // channel whose rho was taken as 1 (WavefrontVertex::unit), at the first
+                            // such record (the true radiance's end), and for that record at the
+                            // second; a record after the first gathers nothing there.
+                            double end = Fake ? double(L[c]) - fake_total[size_t(v.seq)][c] : double(L[c]);
+                            if constexpr (Unit) {
+                                const std::array<int, 6> &z = zeros[size_t(v.seq)];
+                                const int first = z[size_t(2 * c)], second = z[size_t(2 * c + 1)];
+                                if (first >= 0 && int(i) > first) {
+                                    g[c] = 0.0;
+                                    continue;
+                                }
+                                if (first == int(i)) {
+                                    end = second >= 0 ? before(size_t(second)) : end;
+                                    g[c] = double(dL[c]) * (end - before(i));
+                                    continue;
+                                }
+                                if (first >= 0) end = before(size_t(first));
+                            }
+                            if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
+                                double C = double(v.value[c]), rest = end - before(i) - C;
+                                g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
                                 continue;
                             }
-                            if (first == int(i)) {
-                                end = second >= 0 ? before(size_t(second)) : end;
-                                g[c] = double(dL[c]) * (end - before(i));
+                            if (v.kind == WavefrontVertex::Input) {
+                                g[c] = double(dL[c]) * (end - before(i)) / double(v.value[c]);
                                 continue;
                             }
-                            if (first >= 0) end = before(size_t(first));
+                            // Emission: C / Le, or where the lanes read Le as 1, C itself (dC/dLe).
+                            const double Le = v.unit && v.value[c] == 0.f ? 1.0 : double(v.value[c]);
+                            g[c] = double(dL[c]) * double(v.gathered[c]) / Le;
                         }
-                        if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
-                            double C = double(v.value[c]), rest = end - before(i) - C;
-                            g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
-                            continue;
-                        }
-                        if (v.kind == WavefrontVertex::Input) {
-                            g[c] = double(dL[c]) * (end - before(i)) / double(v.value[c]);
-                            continue;
-                        }
-                        // Emission: C / Le, or where the lanes read Le as 1, C itself (dC/dLe).
-                        const double Le = v.unit && v.value[c] == 0.f ? 1.0 : double(v.value[c]);
-                        g[c] = double(dL[c]) * double(v.gathered[c]) / Le;
-                    }
-                    double *grad = params.grad[size_t(v.read.param)];
-                    for (int i = 0; i < v.read.n; ++i) {
-                        double w = double(v.read.weight[i]);
-                        double *texel = grad + v.read.offset[i];
-                        if (v.read.channels == 1) {
-                            texel[0] += w * (g[0] + g[1] + g[2]);
-                        } else {
-                            for (int c = 0; c < 3; ++c) texel[c] += w * g[c];
+                        double *grad = params.grad[size_t(v.read.param)];
+                        for (int i = 0; i < v.read.n; ++i) {
+                            double w = double(v.read.weight[i]);
+                            double *texel = grad + v.read.offset[i];
+                            if (v.read.channels == 1) {
+                                texel[0] += w * (g[0] + g[1] + g[2]);
+                            } else {
+                                for (int c = 0; c < 3; ++c) texel[c] += w * g[c];
+                            }
                         }
                     }
-                }
+                };
+                if (any_fake) deposit(std::true_type{}, std::true_type{});
+                else if (any_unit) deposit(std::true_type{}, std::false_type{});
+                else deposit(std::false_type{}, std::false_type{});
             }
             n_batch = 0;
         };

@@ -1570,7 +1570,7 @@ RBPT_INLINE void wrap_pair_lanes(int i, int n, int &w0, int &w1) {
 /// rho (whose branch's record may go unused) and a mirror's or rough conductor's of three
 /// zero channels (whose weights hold other factors) are left as they are: render_bwd gives
 /// their samples to the tape.
-void unit_zero_inputs(Batch &b, int k, WavefrontVertex &v, WavefrontScene::Lane lane) {
+RBPT_INLINE void unit_zero_inputs(Batch &b, int k, WavefrontVertex &v, WavefrontScene::Lane lane) {
     const int zeros = (v.value[0] == 0.f) + (v.value[1] == 0.f) + (v.value[2] == 0.f);
     if (zeros == 0 || lane == WavefrontScene::Glass || (zeros == 3 && lane != WavefrontScene::Diffuse)) return;
     float *a[3] = {b.ar, b.ag, b.ab}, *rr[3] = {b.rr_r, b.rr_g, b.rr_b};
