@@ -1848,10 +1848,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
     int *const side_lane = buffers.side_lane;
     RoughLanes &ggx = buffers.ggx, &beckmann = buffers.beckmann;
-    // An emission record of radiance parameter p: its channels that the lanes read as 1 put
-    // back to their true 0 (WavefrontVertex::unit).
+    // The channels (bits) of radiance parameter p that are zero and that the lanes read as 1
+    // (WavefrontRecord::unit_radiance).
+    auto radiance_zeros = [&](int p) {
+        return !record || record->unit_radiance.empty() || p < 0 ? 0 : int(record->unit_radiance[size_t(p)]);
+    };
+    // An emission record of radiance parameter p: those channels put back to their true 0
+    // (WavefrontVertex::unit).
     auto unit_radiance = [&](WavefrontVertex &v, int p) {
-        const int zero = record->unit_radiance.empty() ? 0 : record->unit_radiance[size_t(p)];
+        const int zero = radiance_zeros(p);
         for (int c = 0; c < 3; ++c)
             if (zero >> c & 1) v.value[c] = 0.f, v.unit = true;
     };
@@ -2179,7 +2184,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             if (b.record_rough[k] >= 0) {
                 // (The true C_e: zero in a radiance's channels that the lanes read as 1.)
                 float *C = record->vertices[size_t(b.record_rough[k])].value;
-                const int zero = record->unit_radiance.empty() || light.radiance_param < 0 ? 0 : record->unit_radiance[size_t(light.radiance_param)];
+                const int zero = radiance_zeros(light.radiance_param);
                 C[0] = zero & 1 ? 0.f : b.cr[k], C[1] = zero & 2 ? 0.f : b.cg[k], C[2] = zero & 4 ? 0.f : b.cb[k];
             }
             if (log->watched[light.radiance_param]) {
