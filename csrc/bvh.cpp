@@ -795,7 +795,6 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
             for (int lane = 0; lane < BVHWidth; ++lane)
                 if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
         }
-        if (flat_triangles_.empty()) flat_spheres_.clear();  // (flat() means some triangles)
     }
     two_phase_ = false;
     root_packs_.clear();

@@ -168,7 +168,7 @@ public:
     /// spheres and nothing else (a small scene), whose rays intersect_columns() tests in
     /// SIMD lanes: most of a ray's traversal there is per-ray set-up and branches, for one
     /// node and a pack or two.
-    bool flat() const { return !flat_triangles_.empty() && !two_phase_; }
+    bool flat() const { return (!flat_triangles_.empty() || !flat_spheres_.empty()) && !two_phase_; }
     /// Whether a larger tree is searched in two phases: its root's leaves (triangles only, at
     /// most FlatTriangles: a room's walls and lights around a detailed mesh) against the rays
     /// in SIMD lanes as a flat tree's triangles, then, for the rays that enter one of the

@@ -69,8 +69,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     const Scene &scene = ctx.scene;
     std::optional<IntegratorSettings> path = path_settings(cfg);
     if (!path || path->max_depth == 0) return std::nullopt;
-    // (The interaction stage gathers from the triangles, clamping indices to the last one.)
-    if (scene.emitters.empty() || scene.geometry.triangles.empty()) return std::nullopt;
+    if (scene.emitters.empty()) return std::nullopt;
     WavefrontScene ws;
     ws.predrawn = camera.sampler.type != SamplerType::Independent;
     bool any_lanes = false;
@@ -1448,14 +1447,13 @@ RBPT_INLINE Word word_of(const T *array, int i, int word) {
     return reinterpret_cast<const Word *>(array)[int(sizeof(T) / 4) * i + word];
 }
 
-/// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
-/// triangle or a sphere; `done` marks them. The triangles in SIMD lanes over all lanes (the
-/// others compute numbers nothing reads: spheres' are overwritten, and the shade stage
-/// completes the rest), the spheres over the list of their lanes (sphere_interactions).
+/// Geometry::interaction's triangle branch for the lanes [0, n) whose ray hit a triangle
+/// (`done`), in SIMD lanes over all lanes of a scene that has triangles: the others compute
+/// numbers nothing reads (spheres' are overwritten, and the shade stage completes the rest).
 /// Vertex normals and uv, whose gathers are much of its cost, only in scenes that have them
 /// (Normals, UV).
 template <bool Normals, bool UV>
-void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
+RBPT_INLINE void triangle_interactions(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
     const Triangle *triangles = g.triangles.data();
     const Vec3 *positions = g.positions.data(), *normals = g.normals.data();
     const Vec2 *uvs = g.uvs.data();
@@ -1517,6 +1515,17 @@ void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene 
         }
         store_interaction(b, k, p, p_error, gn, ns);
     }
+}
+
+/// Geometry::interaction's triangle and sphere branches for the lanes [0, n) whose ray hit a
+/// triangle or a sphere; `done` marks them. The triangles in lanes (triangle_interactions;
+/// their indices are clamped to the last triangle, so a scene of spheres alone has none to
+/// gather), the spheres over the list of their lanes (sphere_interactions).
+template <bool Normals, bool UV>
+void interaction_stage(Batch &b, int n, const Geometry &g, const WavefrontScene &ws) {
+    const uint32_t n_triangles = uint32_t(g.triangles.size());
+    if (n_triangles > 0) triangle_interactions<Normals, UV>(b, n, g, ws);
+    else std::fill_n(b.done, n, 0);
     if (!ws.any_spheres) return;
     // The lanes whose ray hit a sphere (the analytic primitive's index clamped, as the
     // triangle's).

@@ -268,17 +268,23 @@ def test06_flat_intersection_vectorises(tmp_path, march):
     assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 16
 
 
-def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside():
+@pytest.mark.parametrize("floor", [True, False])
+def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_inside(floor):
     # Shadow rays (BVH::occluded, which stops at the first hit) are blocked exactly where the
     # nearest hit lies inside their interval: rays towards points on the spheres stopping
     # short by the shadow epsilon (as towards a sphere light), rays from inside, from the
     # surfaces, and with random and unbounded intervals. The same in lanes (occluded_columns,
-    # which the wavefront's shadow rays take in small scenes with sphere lights).
+    # which the wavefront's shadow rays take in small scenes with sphere lights), and the
+    # closest hits in lanes those of the traversal, bitwise: with a floor, and for spheres
+    # alone, which are a flat tree too.
     centers = np.array([[0.0, 0.0, 0.0], [1.5, 0.2, 0.0], [-1.0, 1.0, 0.5], [0.3, -1.2, 1.0]])
     radii = np.array([0.5, 0.3, 0.05, 0.8])
     scene = tr.load_dict({"type": "scene", **{f"s{i}": {"type": "sphere", "center": c.tolist(), "radius": float(r)}
                                               for i, (c, r) in enumerate(zip(centers, radii))},
-                          "floor": {"type": "rectangle", "to_world": tr.Transform.translate([0, -2.5, 0]).rotate([1, 0, 0], -90).scale(4)}})
+                          **({"floor": {"type": "rectangle", "to_world": tr.Transform.translate([0, -2.5, 0])
+                                        .rotate([1, 0, 0], -90).scale(4)}} if floor else {})})
+    if tr._C.build_isa != "sse2":  # (the flat tree needs one 8-wide node)
+        assert scene._native.bvh_flat
     rng = np.random.default_rng(8)
     n = 6000
     o = rng.normal(size=(n, 3)) * 2.0
@@ -312,9 +318,12 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
     o[m + 1000:m + 2000] = centers[which[m + 1000:m + 2000]] + normal[m + 1000:m + 2000] * radii[which[m + 1000:m + 2000], None] * 0.5
     rays = [torch.from_numpy(a).float() for a in (o, d, tmin, tmax)]
     blocked = tr._C.occluded_rays(scene._native, *rays, False)
-    hit = tr._C.closest_hits(scene._native, *rays, False)[1] >= 0
+    traversal = tr._C.closest_hits(scene._native, *rays, False)
+    hit = traversal[1] >= 0
     assert 500 < int(blocked.sum()) < n - 500
     assert torch.equal(blocked, hit)
+    for a, b in zip(tr._C.closest_hits(scene._native, *rays, True), traversal):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, True), blocked)
     assert torch.equal(tr._C.occluded_rays(scene._native, *rays, False, masks=True), blocked)
     # The wavefront gives lanes without a shadow ray an empty interval (tmax -1): nothing

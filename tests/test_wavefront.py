@@ -335,16 +335,10 @@ def test07_textured_diffuse_reflectances_take_the_lanes_bitwise(tmp_path, monkey
     assert torch.equal(wavefront, scalar)
 
 
-@pytest.mark.parametrize("change", ["no triangles", "direct", "float64"])
+@pytest.mark.parametrize("change", ["direct", "float64"])
 def test06_scenes_outside_the_subset_take_the_scalar_integrator(tmp_path, change):
     d = room_dict(tmp_path)
-    if change == "environment":
-        d["sky"] = {"type": "constant"}
-    elif change == "no triangles":  # spheres under the sky
-        d = {k: v for k, v in d.items() if not isinstance(v, dict) or v.get("type") not in ("rectangle", "obj")}
-        d["ball"] = {"type": "sphere", "bsdf": {"type": "diffuse"}}
-        d["sky"] = {"type": "constant"}
-    elif change == "direct":  # (one sample of each, or of one alone, is path tracing's first vertex: lanes)
+    if change == "direct":  # (one sample of each, or of one alone, is path tracing's first vertex: lanes)
         d["integrator"] = {"type": "direct", "emitter_samples": 2}
     scene = tr.load_dict(d, dtype=torch.float64 if change == "float64" else torch.float32)
     assert not uses_wavefront(scene)
@@ -879,3 +873,35 @@ def test28_zero_channels_of_radiances_in_lanes(tmp_path, monkeypatch):
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=16)
     grads, _, _ = backward(scene, keys, spp=16)
     assert float(grads["lamp.intensity.value"][1].abs()) > 0 and float(grads["sky.radiance.value"][0].abs()) > 0
+
+
+@pytest.mark.parametrize("lights", ["environment and a sphere", "a sphere only"])
+def test29_spheres_alone_take_the_lanes(tmp_path, monkeypatch, lights):
+    # A scene without a triangle (spheres under the sky: a material on a ball) takes the
+    # wavefront, whose interaction stage has no triangle to gather from: the image bitwise
+    # path_li's, and the backward pass in lanes with the tape's gradients.
+    d = room_dict(tmp_path, {"max_depth": 5})
+    d = {k: v for k, v in d.items() if not isinstance(v, dict) or v.get("type") not in ("rectangle", "obj")}
+    d["ground"] = {"type": "sphere", "radius": 50, "center": [0, -50, 0],
+                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}}
+    d["ball"] = {"type": "sphere", "radius": 0.35, "center": [-0.3, 0.35, 0.2],
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard", "to_uv": tr.Transform.scale([4, 4, 1])}}}
+    d["metal"] = {"type": "sphere", "radius": 0.25, "center": [0.5, 0.25, 0.3],
+                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}}
+    d["glass"] = {"type": "sphere", "radius": 0.2, "center": [0.1, 0.2, 0.8], "bsdf": {"type": "dielectric"}}
+    d["inside_out"] = {"type": "sphere", "radius": 0.15, "center": [-0.6, 0.8, 0], "flip_normals": True,
+                       "bsdf": {"type": "diffuse"}}
+    d["bulb"] = {"type": "sphere", "radius": 0.15, "center": [0.4, 1.2, 0.6],
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [8.0, 7.0, 5.0]}}}
+    if lights == "environment and a sphere":
+        d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}}
+    scene = tr.load_dict(d)
+    shapes = [v for v in d.values() if isinstance(v, dict) and ("bsdf" in v or "emitter" in v)]
+    assert len(shapes) == 6 and all(v["type"] == "sphere" for v in shapes)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
+    assert float(scalar.mean()) > 0.02
+    assert torch.equal(wavefront, scalar)
+    keys = ["ground.bsdf.reflectance.value", "ball.bsdf.reflectance.color0.value", "bulb.emitter.radiance.value"]
+    if lights == "environment and a sphere":
+        keys.append("sky.radiance.value")
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
