@@ -76,6 +76,7 @@ bench: $(STAMP)
 	$(PYTHON) benchmarks/bench_profile.py
 	$(PYTHON) benchmarks/bench_variance.py
 	$(PYTHON) benchmarks/bench_simd.py
+	$(PYTHON) benchmarks/bench_survey.py
 
 # The comparison as on an AVX2-only machine: ours built for x86-64-v3, Mitsuba's kernels
 # compiled for Haswell with 8 lanes and its Embree limited to AVX2 (the benchmarks re-run

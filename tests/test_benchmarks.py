@@ -189,3 +189,21 @@ def test08_mitsuba_passes_make_one_film(monkeypatch):
     monkeypatch.setattr(mitsuba_ref, "MAX_SAMPLES_PER_PASS", 1 << 22)
     one = mitsuba_ref.render(scene, 4, seed=3)
     np.testing.assert_allclose(one, np.asarray(mi.render(scene, spp=4, seed=3))[..., :3], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.skipif(not (SHARED / "cbox" / "cbox.xml").exists(), reason="shared scenes not present")
+def test09_survey_variants_load_and_differ(tmp_path):
+    # bench_survey.py's variants are edits of the shared cbox's text: each must still apply
+    # (an edit that no longer matches raises) and give a scene we load and render, and the
+    # one whose light it changes must render differently from the cbox.
+    import torch
+    import torch_rbpt as tr
+    bench = load_benchmark("bench_survey")
+    images = {}
+    for name in bench.VARIANTS:
+        scene = tr.load_file(bench.scene_file(name, tmp_path), res=16)
+        images[name] = tr.render(scene, spp=4, seed=1)
+        assert bool(torch.isfinite(images[name]).all()) and float(images[name].mean()) > 0.01, name
+    assert (tmp_path / "direct4.xml").read_text().count("shading_samples") == 1
+    for name in ("point", "cube_light", "disk_light", "many_spheres"):
+        assert not torch.equal(images[name], images["cbox"]), name
