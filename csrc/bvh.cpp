@@ -766,17 +766,19 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
         collapser.node(&root_kid, 1, 0);
     }
 
-    // A small tree of triangles and spheres is also kept flat (intersect_columns()).
+    // A small tree of triangles, spheres, disks and cylinders is also kept flat
+    // (intersect_columns()).
     flat_triangles_.clear();
     flat_coords_.clear();
     flat_prims_.clear();
     flat_spheres_.clear();
+    flat_others_.clear();
     bool flat = nodes_.size() == 1;
-    int n_triangles = 0, n_spheres = 0;
+    int n_triangles = 0, n_spheres = 0, n_others = 0;
     for (const PrimPack &pack : packs_) {
-        flat = flat && pack.others == 0;
         n_triangles += __builtin_popcount(pack.triangles);
         n_spheres += __builtin_popcount(pack.spheres);
+        n_others += __builtin_popcount(pack.others);
     }
     // A pack's triangles, lane by lane, appended to `tris`.
     auto append_triangles = [](const PrimPack &pack, std::vector<FlatTriangle> &tris) {
@@ -789,11 +791,15 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
             tris.push_back(t);
         }
     };
-    if (flat && n_triangles <= FlatTriangles && n_spheres <= FlatSpheres) {
+    if (flat && n_triangles <= FlatTriangles && n_spheres <= FlatSpheres && n_others <= FlatOthers) {
         for (const PrimPack &pack : packs_) {
             append_triangles(pack, flat_triangles_);
-            for (int lane = 0; lane < BVHWidth; ++lane)
+            for (int lane = 0; lane < BVHWidth; ++lane) {
                 if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
+                if (!(pack.others >> lane & 1)) continue;
+                const Bounds box = analytic_bounds(geometry_->analytic_shape(pack.prim[lane]));
+                flat_others_.push_back({pack.prim[lane], {box.lo.x, box.lo.y, box.lo.z}, {box.hi.x, box.hi.y, box.hi.z}});
+            }
         }
     }
     two_phase_ = false;
@@ -1947,6 +1953,25 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
             const float t = sphere_t[j];
             if (t == best_t[k]) retrace[k] = 1.f;
             if (t < best_t[k]) best_t[k] = t, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = prim;
+        }
+    }
+    // Each disk or cylinder against the rays that enter its (widened) box before their
+    // nearest hit so far, listed in lanes and tested one at a time with the traversal's own
+    // test (intersect_disk_or_cylinder, in double), their hits kept as the spheres' are.
+    for (const FlatOther &other : flat_others_) {
+        const Shape &s = geometry_->analytic_shape(other.prim);
+#pragma GCC ivdep
+        for (int k = 0; k < n_in; ++k) {
+            const Vec3 o{r.ox[k], r.oy[k], r.oz[k]}, inv_d{inv_x[k], inv_y[k], inv_z[k]};
+            near[k] = enters_box(other.lo, other.hi, o, inv_d, r.tmin[k], std::min(r.tmax[k], best_t[k]), BoxWiden) ? 1 : 0;
+        }
+        const int m = simd::select_indices(near, n_in, 1, near_list);
+        for (int j = 0; j < m; ++j) {
+            const int k = near_list[j];
+            const AnalyticHit h = intersect_disk_or_cylinder(rays_in.ray(k), s, r.tmin[k], r.tmax[k]);
+            if (!h.hit) continue;
+            if (h.t == best_t[k]) retrace[k] = 1.f;
+            if (h.t < best_t[k]) best_t[k] = h.t, best_u[k] = h.u, best_v[k] = h.v, best_prim[k] = other.prim;
         }
     }
     // The hits.

@@ -117,7 +117,8 @@ public:
     /// lanes and with 8 (session 24); the cornell-box, 36, 0.94x with 16 lanes (session 24)
     /// and, once the rounding bound was deferred and passes skipped by chunks, 0.92x with 8
     /// (an x86-64-v3 build, session 33: 463-471 -> 431-434 ms; it had been 1.11x).
-    static constexpr int FlatTriangles = 40, FlatSpheres = 8;
+    /// And most disks and cylinders (FlatOthers), each tested for the rays that enter its box.
+    static constexpr int FlatTriangles = 40, FlatSpheres = 8, FlatOthers = 8;
     /// Build over every primitive of `geometry`, which must outlive the BVH.
     void build(const Geometry &geometry);
     /// Build over the primitives `subset` of `geometry` (ids as in Geometry; hits report them).
@@ -168,7 +169,9 @@ public:
     /// spheres and nothing else (a small scene), whose rays intersect_columns() tests in
     /// SIMD lanes: most of a ray's traversal there is per-ray set-up and branches, for one
     /// node and a pack or two.
-    bool flat() const { return (!flat_triangles_.empty() || !flat_spheres_.empty()) && !two_phase_; }
+    bool flat() const {
+        return (!flat_triangles_.empty() || !flat_spheres_.empty() || !flat_others_.empty()) && !two_phase_;
+    }
     /// Whether a larger tree is searched in two phases: its root's leaves (triangles only, at
     /// most FlatTriangles: a room's walls and lights around a detailed mesh) against the rays
     /// in SIMD lanes as a flat tree's triangles, then, for the rays that enter one of the
@@ -273,6 +276,12 @@ private:
     static void flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
                             float *t, float *hit);
     std::vector<uint32_t> flat_spheres_;
+    /// The flat tree's disks and cylinders, each with its box (the one the tree holds it in).
+    struct FlatOther {
+        uint32_t prim;
+        float lo[3], hi[3];
+    };
+    std::vector<FlatOther> flat_others_;
 
     const Geometry *geometry_ = nullptr;
     std::vector<BVHNode> nodes_;

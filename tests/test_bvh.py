@@ -265,7 +265,7 @@ def test06_flat_intersection_vectorises(tmp_path, march):
     # hits bitwise equal and only makes them slower, which no other test sees. (With AVX2
     # and AVX-512 the chunks' box and triangle tests, and those box tests' whole registers,
     # are written in their intrinsics: test14.)
-    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 16
+    assert assert_marked_loops_vectorise("bvh.cpp", "#pragma GCC ivdep", march, tmp_path) == 17
 
 
 @pytest.mark.parametrize("floor", [True, False])
@@ -340,8 +340,9 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
     # without the general traversal's stack (intersect_one_node, occluded_one_node): the
     # closest hits (t, primitive, barycentrics; ties go to the child the traversal visits
     # first) and the blocked rays must be the traversal's, bit for bit. Also in a scene of
-    # one node with a disk and a cylinder, which is not flat (the renderer's closest hits
-    # take the shortcut there too).
+    # one node with a disk and a cylinder, which is flat since session 52 (its disks and
+    # cylinders tested for the rays that enter their boxes): there the lanes' closest hits
+    # and blocked rays must be the traversal's too.
     scenes = [_small_scene(far_cube)]
     if not far_cube:
         scenes.append(tr.load_dict({
@@ -352,7 +353,7 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
             "tube": {"type": "cylinder", "p0": [0.5, 1.0, -1.0], "p1": [0.5, 1.0, 1.0], "radius": 0.3},
             "ball": {"type": "sphere", "center": [-1.0, -0.5, 0.5], "radius": 0.4},
         }))
-        assert not scenes[1]._native.bvh_flat
+        assert scenes[1]._native.bvh_flat
     rng = np.random.default_rng(9)
     for scene in scenes:
         assert scene._native.bvh_node_count == 1
@@ -362,6 +363,11 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
         assert int((traversal[1] >= 0).sum()) > 2500
         for a, b in zip(shortcut, traversal):
             assert torch.equal(a.nan_to_num(), b.nan_to_num())
+        if scene is not scenes[0]:
+            others = (traversal[1] == 14) | (traversal[1] == 15)  # (after 14 triangles: the disk, the tube)
+            assert int(others.sum()) > 200
+            for a, b in zip(tr._C.closest_hits(scene._native, *args, True), traversal):
+                assert torch.equal(a.nan_to_num(), b.nan_to_num())
         # Shadow rays: the same rays, and each ending just short of its nearest hit (a
         # rounding before or after it, where the box tests decide). Also through the
         # children each ray enters, found for a batch in lanes (BVH::root_masks, then
@@ -373,6 +379,8 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
             blocked = tr._C.occluded_rays(scene._native, *rays, False)
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, traversal=True))
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, masks=True))
+            if scene is not scenes[0]:
+                assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, True))
             assert int(blocked.sum()) > (1000 if scale is None or scale > 1 else -1)
 
 
