@@ -165,10 +165,10 @@ public:
     bool occluded_children(const Ray &ray, int mask) const;
     /// Whether the tree is one node (a small scene).
     bool one_node() const { return nodes_.size() == 1; }
-    /// Whether the tree is one node over at most FlatTriangles triangles and FlatSpheres
-    /// spheres and nothing else (a small scene), whose rays intersect_columns() tests in
-    /// SIMD lanes: most of a ray's traversal there is per-ray set-up and branches, for one
-    /// node and a pack or two.
+    /// Whether the tree is one node over at most FlatTriangles triangles, FlatSpheres
+    /// spheres and FlatOthers disks and cylinders (a small scene), whose rays
+    /// intersect_columns() tests in SIMD lanes: most of a ray's traversal there is per-ray
+    /// set-up and branches, for one node and a pack or two.
     bool flat() const {
         return (!flat_triangles_.empty() || !flat_spheres_.empty() || !flat_others_.empty()) && !two_phase_;
     }
@@ -276,7 +276,7 @@ private:
     static void flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
                             float *t, float *hit);
     std::vector<uint32_t> flat_spheres_;
-    /// The flat tree's disks and cylinders, each with its box (the one the tree holds it in).
+    /// The flat tree's disks and cylinders, each with its own box (analytic_bounds()).
     struct FlatOther {
         uint32_t prim;
         float lo[3], hi[3];
