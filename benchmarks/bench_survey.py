@@ -30,6 +30,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from machine import cpu_model, write_csv  # noqa: E402
 import mitsuba_ref  # noqa: E402  (imports Mitsuba lazily)
+from bench_error_time import rmse  # noqa: E402  (the error-time benchmark's metric)
 
 CBOX = HERE.parent.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
 OUT = HERE / "results" / "survey"
@@ -86,10 +87,6 @@ def scene_file(name: str, out: Path = OUT) -> Path:
     path = out / f"{name}.xml"
     path.write_text(changed)
     return path
-
-
-def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float(((a.float() - b.float()) ** 2).mean().sqrt())
 
 
 def survey(name: str, res: int, spp: int, ref_spp: int, repeats: int) -> dict:
