@@ -22,26 +22,34 @@ struct IntegratorSettings {
     /// whether vertices sample an emitter, and whether the emission BSDF samples find counts
     /// (without, a path ends after its emitter sample). Either alone is not MIS-weighted.
     bool emitter_sampling = true, bsdf_sampling = true;
+    /// `path` only as path_settings() makes it of `direct` with n samples of each kind (or n
+    /// of one kind alone): n paths of two vertices from each camera ray's first vertex, each
+    /// of throughput 1/n after the emission found there (direct_li).
+    int sub_paths = 1;
 };
 
 /// The `path` settings under which path_li computes what `cfg` computes, with the same random
-/// numbers and the same operations in the same order: `path` itself, and `direct` with one
-/// emitter sample and one BSDF sample, which is path_li's first vertex with max_depth 2 and
-/// no roulette (compare direct_li with path_li and path_vertex: its MIS weights' factors
-/// 1/2 and 1/1 are exact); also with one emitter sample and no BSDF sample, or the reverse
-/// (emitter_sampling, bsdf_sampling: the other technique's density in the MIS weight is
-/// direct_li's times 0, as its factor is 0). Nothing for other `direct` settings. (The
-/// wavefront runs `path` only; tests/test_wavefront.py checks `direct` against direct_li
+/// numbers and the same operations in the same order: `path` itself, and `direct` with n
+/// emitter samples and n BSDF samples (or n of one kind and none of the other), which
+/// direct_li computes as n paths of two vertices from the camera ray's first vertex (path_li
+/// with max_depth 2 and no roulette, sub_paths n: their throughput starts at 1/n, and only the
+/// first adds the emission the camera ray found). With one of each, the MIS weights are
+/// Mitsuba's direct's (whose factors 1/2 and 1/2 cancel exactly); with one kind alone, the
+/// other technique's density in the MIS weight is times 0 (emitter_sampling, bsdf_sampling),
+/// as in direct's (its factor is 0). Nothing for other `direct` settings (unequal nonzero
+/// counts), which direct_li samples as Mitsuba's direct: all emitter samples, then all BSDF
+/// samples. (tests/test_wavefront.py checks the wavefront's `direct` against direct_li
 /// bitwise.)
 inline std::optional<IntegratorSettings> path_settings(const IntegratorSettings &cfg) {
     if (cfg.type == IntegratorType::Path) return cfg;
-    const bool one_each = cfg.emitter_samples == 1 && cfg.bsdf_samples == 1;
-    const bool one_alone = cfg.emitter_samples + cfg.bsdf_samples == 1 && cfg.emitter_samples >= 0 && cfg.bsdf_samples >= 0;
-    if (!(one_each || one_alone) || cfg.max_depth == 0) return std::nullopt;
+    const int n_e = cfg.emitter_samples, n_b = cfg.bsdf_samples;
+    const bool paired = n_e >= 0 && n_b >= 0 && (n_e == n_b || n_e == 0 || n_b == 0) && n_e + n_b > 0;
+    if (!paired || cfg.max_depth == 0) return std::nullopt;
     IntegratorSettings path = cfg;
     path.type = IntegratorType::Path;
-    path.emitter_sampling = cfg.emitter_samples == 1;
-    path.bsdf_sampling = cfg.bsdf_samples == 1;
+    path.emitter_sampling = n_e > 0;
+    path.bsdf_sampling = n_b > 0;
+    path.sub_paths = std::max(n_e, n_b);
     path.max_depth = 2;
     path.rr_depth = 2;  // (roulette starts where depth + 1 >= rr_depth: after the last vertex)
     return path;
@@ -209,6 +217,24 @@ S direct_li(const RenderContext<S> &ctx, const IntegratorSettings &cfg, Ray ray,
     int emitter = scene.emitter_at(si);
     if (emitter >= 0 && !cfg.hide_emitters) L += emitter_eval<S>(ctx, scene.emitters[emitter], si);
     if (!si.valid) return L;
+
+    // With n samples of each kind (or of one kind alone): n paths of two vertices from si,
+    // path_li's, each of throughput 1/n.
+    if (std::optional<IntegratorSettings> sub = path_settings(cfg)) {
+        PathState<S> path;
+        path.L = L;
+        for (int i = 0; i < sub->sub_paths; ++i) {
+            path = PathState<S>{path.L, S(1.f / float(sub->sub_paths))};
+            Ray next;
+            if (!path_vertex(ctx, *sub, 0, si, sampler, path, next)) continue;
+            int e;
+            SurfaceInteraction hit = scene.intersect_emitter(next, &e);
+            if (e >= 0)
+                path.L += emission_found(ctx, scene.emitters[e], hit, path.beta, path.prev_delta, path.prev_pdf,
+                                         path.prev_p);
+        }
+        return path.L;
+    }
     int bsdf_index = scene.bsdf_at(si);
     const BSDF &bsdf = scene.bsdfs[bsdf_index];
     float n_e = float(cfg.emitter_samples), n_b = float(cfg.bsdf_samples);

@@ -912,6 +912,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             if (unit_radiance[p]) lane_values.data[p] = v.data();
         }
         wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, lane_values), cfg, camera);
+        // (A record's deposit takes the path's radiance at the sample's end, where `direct`'s
+        // sub-paths would need their own: the tape re-traces those.)
+        if (wavefront && path_settings(cfg)->sub_paths > 1) wavefront.reset();
         // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
         // path that reaches them.)
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {

@@ -1,5 +1,6 @@
 #include "wavefront.h"
 
+#include <climits>
 #include <cstddef>
 #include <cstdlib>
 #include <cstring>
@@ -888,8 +889,9 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 
 /// The random numbers of this vertex for the lanes marked `shade`, drawn before the stages
 /// that take them, in path_vertex's order: the emitter sample's two where the BSDF samples an
-/// emitter (BSDF::smooth, with emitter sampling), the BSDF sample's three, and the
-/// roulette's where it applies (a path that ends first never reads the numbers past its
+/// emitter (BSDF::smooth, with emitter sampling), the BSDF sample's three (with BSDF
+/// sampling: a stream continues into `direct`'s next sub-path), and the roulette's where it
+/// applies (a path that ends first never reads the numbers past its
 /// end), into the p* columns; the lanes' samplers move on. The independent sampler's in SIMD
 /// lanes from each lane's stream; the others' (WavefrontScene::predrawn) one lane at a time
 /// by Sampler, with its permutations and jitter.
@@ -897,6 +899,10 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
                 Sampler::Parts *parts) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float nee = cfg.emitter_sampling ? 1.f : 0.f;
+    const bool bsdf = cfg.bsdf_sampling;
+    // (The lanes' test of BSDF sampling, as a depth it starts from: a loop-invariant flag
+    // would have GCC split the loop in two, neither of which it vectorises.)
+    const int bsdf_depth = bsdf ? 0 : INT_MAX;
     const int rr_depth = cfg.rr_depth;
     if (!ws.predrawn) {
 #pragma GCC ivdep
@@ -906,9 +912,10 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
             const bool emitter = (m.diffuse + m.rough) * nee != 0.f;
             b.pe0[k] = next_1d(b, k, emitter);
             b.pe1[k] = next_1d(b, k, emitter);
-            b.pb1[k] = next_1d(b, k, true);
-            b.pb2x[k] = next_1d(b, k, true);
-            b.pb2y[k] = next_1d(b, k, true);
+            const bool sample = b.depth[k] >= bsdf_depth;
+            b.pb1[k] = next_1d(b, k, sample);
+            b.pb2x[k] = next_1d(b, k, sample);
+            b.pb2y[k] = next_1d(b, k, sample);
             b.prr[k] = next_1d(b, k, b.depth[k] + 1 >= rr_depth);
         }
         return;
@@ -921,9 +928,11 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
             const Vec2 u = sampler.next_2d();
             b.pe0[k] = u.x, b.pe1[k] = u.y;
         }
-        b.pb1[k] = sampler.next_1d();
-        const Vec2 u2 = sampler.next_2d();
-        b.pb2x[k] = u2.x, b.pb2y[k] = u2.y;
+        if (bsdf) {
+            b.pb1[k] = sampler.next_1d();
+            const Vec2 u2 = sampler.next_2d();
+            b.pb2x[k] = u2.x, b.pb2y[k] = u2.y;
+        }
         if (b.depth[k] + 1 >= rr_depth) b.prr[k] = sampler.next_1d();
         store_sampler(b, k, sampler, parts);
     }
@@ -1848,6 +1857,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         /// The samplers other than `independent` of samples [0, n_samples), beyond their
         /// streams (see load_sampler()).
         std::vector<Sampler::Parts> parts;
+        /// `direct`'s sub-paths (IntegratorSettings::sub_paths), per sample: its camera ray
+        /// and its closest hit, the sub-paths it has finished, and its stream where the last
+        /// one ended; and the samples whose next sub-path waits for a drained batch, from
+        /// again[again_next] on.
+        std::vector<Ray> camera_rays;
+        std::vector<Hit> first_hits;
+        std::vector<int> subs;
+        std::vector<uint64_t> states, incs;
+        std::vector<int> again;
     };
     static thread_local std::unique_ptr<Buffers> buffers_storage;
     if (!buffers_storage) buffers_storage = std::make_unique<Buffers>();
@@ -1856,6 +1874,18 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     if (ws.predrawn && buffers.parts.size() < size_t(n_samples)) buffers.parts.resize(size_t(n_samples));
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
     int *const side_lane = buffers.side_lane;
+    const bool sub_paths = cfg.sub_paths > 1;
+    if (sub_paths && buffers.subs.size() < size_t(n_samples)) {
+        buffers.camera_rays.resize(size_t(n_samples)), buffers.first_hits.resize(size_t(n_samples));
+        buffers.subs.resize(size_t(n_samples));
+        buffers.states.resize(size_t(n_samples)), buffers.incs.resize(size_t(n_samples));
+    }
+    std::vector<int> &again = buffers.again;
+    size_t again_next = 0;
+    again.clear();
+    // (The backward pass's records take the path's radiance at its end for each vertex's:
+    // render_bwd traces `direct`'s sub-paths with the tape.)
+    assert(!record || !sub_paths);
     RoughLanes &ggx = buffers.ggx, &beckmann = buffers.beckmann;
     // The channels (bits) of radiance parameter p that are zero and that the lanes read as 1
     // (WavefrontRecord::unit_radiance).
@@ -1881,6 +1911,19 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto unexpected_reads = [&](int k, int reads_before, int expected) {
         if (log && log->count != reads_before + expected) record->tape[size_t(b.seq[k])] = 1;
     };
+    // A path at depth 0 in lane k, of sample seq: its throughput (1/n for `direct`'s n
+    // sub-paths, after the emission its camera ray finds: found_beta()).
+    const float share = 1.f / float(cfg.sub_paths);
+    auto reset_lane = [&](int k, int seq) {
+        b.br[k] = b.bg[k] = b.bb[k] = share;
+        b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
+        b.eta[k] = 1.f;
+        b.prev_pdf[k] = 1.f;
+        b.prev_delta[k] = 1;
+        b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
+        b.seq[k] = seq;
+        b.depth[k] = 0;
+    };
     // Start the paths of samples [next, next + m) in lanes [first, first + m): their camera
     // rays (the perspective sensor's in SIMD lanes: Sampler's stream set-up and its two
     // uniforms, Camera::perspective_ray; the others one sample at a time), at depth 0.
@@ -1900,16 +1943,39 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         }
         for (int k = first; k < first + m; ++k) {
             b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
-            b.br[k] = b.bg[k] = b.bb[k] = 1.f;
-            b.rr_r[k] = b.rr_g[k] = b.rr_b[k] = 1.f;
-            b.eta[k] = 1.f;
-            b.prev_pdf[k] = 1.f;
-            b.prev_delta[k] = 1;
-            b.prev_px[k] = b.prev_py[k] = b.prev_pz[k] = 0.f;
-            b.seq[k] = next + (k - first);
-            b.depth[k] = 0;
+            reset_lane(k, next + (k - first));
+        }
+        for (int k = first; sub_paths && k < first + m; ++k) {
+            buffers.camera_rays[size_t(b.seq[k])] = load_ray(b, k);
+            buffers.subs[size_t(b.seq[k])] = 0;
         }
         next += m;
+    };
+    // Start the next sub-paths of `m` waiting samples in lanes [first, first + m): from their
+    // camera ray again, with its closest hit (found by the first sub-path: `known_hits`
+    // lanes at the batch's end are not traced again), their radiance and their stream going on.
+    int known_hits = 0;
+    auto start_again = [&](int first, int m) {
+        for (int k = first; k < first + m; ++k) {
+            const int seq = again[again_next++];
+            store_ray(b, k, buffers.camera_rays[size_t(seq)],
+                      Sampler::independent(buffers.states[size_t(seq)], buffers.incs[size_t(seq)]));
+            const Hit &hit = buffers.first_hits[size_t(seq)];
+            b.ht[k] = hit.t, b.hu[k] = hit.u, b.hv[k] = hit.v, b.prim[k] = hit.prim;
+            b.Lr[k] = L[seq][0], b.Lg[k] = L[seq][1], b.Lb[k] = L[seq][2];
+            reset_lane(k, seq);
+        }
+    };
+    // A drained batch's paths: the waiting sub-paths (after the next samples, which fill the
+    // lanes they leave).
+    auto start_drained = [&] {
+        const int m = int(std::min(again.size() - again_next, size_t(B)));
+        const int fresh = std::min(n_samples - next, B - m);
+        start(0, fresh);
+        start_again(fresh, m);
+        known_hits = m;
+        if (again_next == again.size()) again.clear(), again_next = 0;
+        return m + fresh;
     };
     // Lanes freed by ended paths take the next samples at the end of each bounce, so that the
     // stages run over full batches to the last samples (cornell-box's paths, up to 65
@@ -1920,14 +1986,32 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     const bool refill = !(cfg.max_depth >= 1 && cfg.max_depth <= 2);
     int n = std::min(n_samples, B);
     start(0, n);
-    auto finish = [&](int k) { L[b.seq[k]] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]); };
+    // Lane k's path ended: its radiance, and for `direct`, its sample's next sub-path waits
+    // (unless the camera ray escaped: direct_li has no vertex to shade then).
+    auto finish = [&](int k) {
+        const int seq = b.seq[k];
+        L[seq] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]);
+        if (!sub_paths || (b.depth[k] == 0 && b.prim[k] == ~0u)) return;
+        if (++buffers.subs[size_t(seq)] == cfg.sub_paths) return;
+        buffers.states[size_t(seq)] = b.state[k], buffers.incs[size_t(seq)] = b.inc[k];
+        again.push_back(seq);
+    };
+    // Whether the emission lane k's ray finds is dropped: seen directly by the camera with
+    // hide_emitters, or found again by a later sub-path's camera ray. The throughput that
+    // weights it: 1 for a camera ray.
+    auto hidden = [&](int k) {
+        return b.depth[k] == 0 && (cfg.hide_emitters || (sub_paths && buffers.subs[size_t(b.seq[k])] > 0));
+    };
+    auto found_beta = [&](int k) {
+        return b.depth[k] == 0 ? RGB<float>(1.f) : RGB<float>(b.br[k], b.bg[k], b.bb[k]);
+    };
     // The last vertex max_depth allows: only the emission lane k's ray finds (path_li's).
     auto last_vertex = [&](int k) {
         int emitter, reads = log ? log->count : 0, expected = 0;
         const Hit hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
         SurfaceInteraction si = scene.emitter_interaction(load_ray(b, k), hit, &emitter);
-        if (emitter >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
-            RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+        if (emitter >= 0 && !hidden(k)) {
+            RGB<float> Le = emission_found(ctx, scene.emitters[emitter], si, found_beta(k),
                                            b.prev_delta[k] != 0, b.prev_pdf[k],
                                            Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
             b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
@@ -1948,9 +2032,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             rays_traced += uint64_t(trace_reaching(b, n, ws.emitter_boxes, scene.bvh));
         } else {
             // Trace each path's ray to its closest hit (in SIMD lanes in a small scene).
-            scene.bvh.intersect_columns(ray_columns(b), n, {b.ht, b.hu, b.hv, b.prim});
-            rays_traced += uint64_t(n);
+            const int traced = n - known_hits;
+            scene.bvh.intersect_columns(ray_columns(b), traced, {b.ht, b.hu, b.hv, b.prim});
+            rays_traced += uint64_t(traced);
+            // (A first sub-path keeps its camera ray's hit for the others.)
+            for (int k = 0; sub_paths && k < traced; ++k) {
+                if (b.depth[k] == 0) buffers.first_hits[size_t(b.seq[k])] = Hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
+            }
         }
+        known_hits = 0;
         if (n_last == n) {
             // Every path at its last vertex: they end here, with the emission of those whose
             // ray found an emitter (listed in lanes).
@@ -1962,8 +2052,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int n_emitting = simd::select_indices(emits, n, 1, emitting);
             for (int j = 0; j < n_emitting; ++j) last_vertex(emitting[j]);
             for (int k = 0; k < n; ++k) finish(k);
-            n = std::min(n_samples - next, B);
-            start(0, n);
+            n = start_drained();
             continue;
         }
         // Complete the interactions of the triangles hit, in lanes.
@@ -2001,9 +2090,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {
                 // The ray escaped: the environment's emission (if the scene has one) ends it.
-                if (scene.environment >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
+                if (scene.environment >= 0 && !hidden(k)) {
                     const Emitter &e = scene.emitters[size_t(scene.environment)];
-                    RGB<float> Le = emission_found(ctx, e, SurfaceInteraction(), RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                    RGB<float> Le = emission_found(ctx, e, SurfaceInteraction(), found_beta(k),
                                                    b.prev_delta[k] != 0, b.prev_pdf[k],
                                                    Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                     b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
@@ -2020,9 +2109,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 store_interaction(b, k, si);
             }
             const Shape &shape = g.shapes[g.shape_of(b.prim[k])];
-            if (shape.emitter >= 0 && !(cfg.hide_emitters && b.depth[k] == 0)) {
+            if (shape.emitter >= 0 && !hidden(k)) {
                 if (!si.valid) si = load_interaction(b, k, g);
-                RGB<float> Le = emission_found(ctx, scene.emitters[shape.emitter], si, RGB<float>(b.br[k], b.bg[k], b.bb[k]),
+                RGB<float> Le = emission_found(ctx, scene.emitters[shape.emitter], si, found_beta(k),
                                                b.prev_delta[k] != 0, b.prev_pdf[k],
                                                Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                 b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];
@@ -2226,7 +2315,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // freed (or in the whole batch, once drained, without refill).
         for (int k = 0; k < live; ++k) ++b.depth[k];
         n = live;
-        if (next < n_samples && (refill || n == 0)) {
+        if (n == 0) {
+            n = start_drained();
+        } else if (next < n_samples && refill) {
             const int m = std::min(n_samples - next, B - n);
             start(n, m);
             n += m;

@@ -24,8 +24,9 @@
 // stage, which then takes them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
-// in the shade stage. It runs for the `path` integrator (and `direct` with one sample of each
-// kind or of one kind alone, as path_settings() makes it), with any sampler (each vertex's
+// in the shade stage. It runs for the `path` integrator (and `direct` with n samples of each
+// kind or of one kind alone, as path_settings() makes it: n paths of two vertices, one after
+// the other from the camera ray's first hit), with any sampler (each vertex's
 // numbers are drawn in one stage before the others, by Sampler one lane at a time for the
 // samplers other than `independent`: WavefrontScene::predrawn),
 // when the scene has a triangle and some BSDF is one of those; other scenes, and the autodiff number types, take

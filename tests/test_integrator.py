@@ -58,7 +58,7 @@ def test03_max_depth_truncates_the_series():
 
 
 def test04_direct_integrator_one_bounce():
-    for es, bs in [(1, 1), (1, 0), (0, 1), (2, 3)]:
+    for es, bs in [(1, 1), (1, 0), (0, 1), (2, 3), (3, 3), (4, 0), (0, 2)]:
         scene = _closed_sphere(0.5, 1.0, {"type": "direct", "emitter_samples": es, "bsdf_samples": bs})
         image = tr.render(scene, spp=2048, seed=4).double()
         assert float(image.mean()) == pytest.approx(1.5, rel=5e-3), (es, bs)

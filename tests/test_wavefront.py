@@ -905,3 +905,43 @@ def test29_spheres_alone_take_the_lanes(tmp_path, monkeypatch, lights):
     if lights == "environment and a sphere":
         keys.append("sky.radiance.value")
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
+
+
+@pytest.mark.parametrize("integrator", [{"shading_samples": 3}, {"shading_samples": 4, "hide_emitters": True},
+                                        {"emitter_samples": 2, "bsdf_samples": 0},
+                                        {"emitter_samples": 0, "bsdf_samples": 3}])
+@pytest.mark.parametrize("sampler", ["independent", "stratified"])
+def test30_direct_with_several_samples_takes_the_lanes(tmp_path, monkeypatch, integrator, sampler):
+    # `direct` with n emitter samples and n BSDF samples (Mitsuba's shading_samples), or n of
+    # one kind alone, is n paths of two vertices from the camera ray's first vertex, each of
+    # throughput 1/n (path_settings(): sub_paths): the wavefront traces them one after the
+    # other from the camera ray, each sample's stream going on, and its image is direct_li's
+    # bit for bit, with diffuse, mirror, glass, GGX and Beckmann vertices under mesh, sphere,
+    # point and sky lights, the emitters hidden or not, with the independent sampler and a
+    # stratified one (whose dimensions go on too).
+    d = sphere_lights(room_dict(tmp_path, {"type": "direct", **integrator}), "spheres and meshes")
+    d["sky"] = {"type": "constant", "radiance": 0.2}
+    d["lamp"] = LAMP
+    d["mirror"] = {"type": "sphere", "radius": 0.2, "center": [0.3, 0.25, 0.2], "bsdf": {"type": "conductor"}}
+    d["glass"] = {"type": "sphere", "radius": 0.2, "center": [-0.1, 0.45, 0.6], "bsdf": {"type": "dielectric"}}
+    d["metal"] = {"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, -0.2],
+                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}}
+    d["plate"] = {"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.3, 0.4]).rotate([1, 0, 0], -60).scale(0.25),
+                  "bsdf": {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.2}}
+    if sampler != "independent":
+        d["sensor"]["sampler"] = {"type": sampler}
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=4, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    # Its samples are not one sub-path's.
+    one = dict(integrator, **{"emitter_samples": min(1, integrator.get("emitter_samples", 1)),
+                              "bsdf_samples": min(1, integrator.get("bsdf_samples", 1))})
+    one.pop("shading_samples", None)
+    d["integrator"] = {"type": "direct", **one}
+    assert not torch.equal(tr.render(tr.load_dict(d), spp=4, seed=5), scalar)
+    # The backward pass traces them with the tape (its records would need each sub-path's
+    # radiance at its end).
+    grads, lanes, taped = backward(scene, ["floor.bsdf.reflectance.value"], spp=4)
+    assert lanes == 0 and taped == 21 * 13 * 4
+    assert float(grads["floor.bsdf.reflectance.value"].abs().max()) > 0
