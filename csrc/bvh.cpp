@@ -773,7 +773,6 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
     flat_prims_.clear();
     flat_spheres_.clear();
     flat_others_.clear();
-    bool flat = nodes_.size() == 1;
     int n_triangles = 0, n_spheres = 0, n_others = 0;
     for (const PrimPack &pack : packs_) {
         n_triangles += __builtin_popcount(pack.triangles);
@@ -791,17 +790,6 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
             tris.push_back(t);
         }
     };
-    if (flat && n_triangles <= FlatTriangles && n_spheres <= FlatSpheres && n_others <= FlatOthers) {
-        for (const PrimPack &pack : packs_) {
-            append_triangles(pack, flat_triangles_);
-            for (int lane = 0; lane < BVHWidth; ++lane) {
-                if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
-                if (!(pack.others >> lane & 1)) continue;
-                const Bounds box = analytic_bounds(geometry_->analytic_shape(pack.prim[lane]));
-                flat_others_.push_back({pack.prim[lane], {box.lo.x, box.lo.y, box.lo.z}, {box.hi.x, box.hi.y, box.hi.z}});
-            }
-        }
-    }
     two_phase_ = false;
     root_packs_.clear();
     root_inner_mask_ = 0;
@@ -833,6 +821,20 @@ void BVH::build(const Geometry &geometry, const std::vector<uint32_t> &subset) {
         } else {
             root_packs_.clear();
             root_inner_mask_ = 0;
+        }
+    }
+    // (Beyond one node too, unless it is searched in two phases: few primitives, some of
+    // them spheres, in a tree of several nodes, as a room of balls, are faster tested in lanes
+    // than traversed one ray at a time.)
+    if (!two_phase_ && n_triangles <= FlatTriangles && n_spheres <= FlatSpheres && n_others <= FlatOthers) {
+        for (const PrimPack &pack : packs_) {
+            append_triangles(pack, flat_triangles_);
+            for (int lane = 0; lane < BVHWidth; ++lane) {
+                if (pack.spheres >> lane & 1) flat_spheres_.push_back(pack.prim[lane]);
+                if (!(pack.others >> lane & 1)) continue;
+                const Bounds box = analytic_bounds(geometry_->analytic_shape(pack.prim[lane]));
+                flat_others_.push_back({pack.prim[lane], {box.lo.x, box.lo.y, box.lo.z}, {box.hi.x, box.hi.y, box.hi.z}});
+            }
         }
     }
     if (!flat_triangles_.empty()) {
@@ -884,8 +886,10 @@ void BVH::build_quads() {
     flat_quads_.clear();
     flat_half_quad_.assign(flat_triangles_.size() / 2, -1);
     // (The pairs of flat_columns()' passes of four: the last triangles, fewer than four, are
-    // tested one by one.)
-    const size_t halves = flat_triangles_.size() / 4 * 2;
+    // tested one by one. Only where the flat triangles are all in leaves of the root, whose
+    // boxes are widened for them below: not in a flat tree of several nodes.)
+    const bool root_leaves = nodes_.size() == 1 || two_phase_;
+    const size_t halves = root_leaves ? flat_triangles_.size() / 4 * 2 : 0;
     using D3 = std::array<double, 3>;
     auto sub = [](const D3 &a, const D3 &b) { return D3{a[0] - b[0], a[1] - b[1], a[2] - b[2]}; };
     auto cross = [](const D3 &a, const D3 &b) {

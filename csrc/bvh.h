@@ -118,7 +118,10 @@ public:
     /// and, once the rounding bound was deferred and passes skipped by chunks, 0.92x with 8
     /// (an x86-64-v3 build, session 33: 463-471 -> 431-434 ms; it had been 1.11x).
     /// And most disks and cylinders (FlatOthers), each tested for the rays that enter its box.
-    static constexpr int FlatTriangles = 40, FlatSpheres = 8, FlatOthers = 8;
+    /// Spheres up to 32 (since session 53; 8 before): each is tested in lanes for the rays
+    /// that pass near it (cbox with 18 more spheres, a tree of 4 nodes traversed one ray at a
+    /// time before: two renders of 128 px at 64 spp, one thread, 1.23-1.52 -> 0.76-0.94 s).
+    static constexpr int FlatTriangles = 40, FlatSpheres = 32, FlatOthers = 8;
     /// Build over every primitive of `geometry`, which must outlive the BVH.
     void build(const Geometry &geometry);
     /// Build over the primitives `subset` of `geometry` (ids as in Geometry; hits report them).
@@ -165,10 +168,12 @@ public:
     bool occluded_children(const Ray &ray, int mask) const;
     /// Whether the tree is one node (a small scene).
     bool one_node() const { return nodes_.size() == 1; }
-    /// Whether the tree is one node over at most FlatTriangles triangles, FlatSpheres
-    /// spheres and FlatOthers disks and cylinders (a small scene), whose rays
-    /// intersect_columns() tests in SIMD lanes: most of a ray's traversal there is per-ray
-    /// set-up and branches, for one node and a pack or two.
+    /// Whether the tree holds at most FlatTriangles triangles, FlatSpheres spheres and
+    /// FlatOthers disks and cylinders (a small scene: one node, or a few over spread-out
+    /// spheres) and is not searched in two phases: its rays intersect_columns() tests in SIMD
+    /// lanes against every primitive; most of a ray's traversal there is per-ray set-up and
+    /// branches, for a node or a few and a pack or two. (Parallelograms are tested as quads
+    /// only in a tree of one node: see build_quads().)
     bool flat() const {
         return (!flat_triangles_.empty() || !flat_spheres_.empty() || !flat_others_.empty()) && !two_phase_;
     }

@@ -750,3 +750,49 @@ def test16_quads_keep_rays_that_leave_them_and_are_watertight(tmp_path):
                 assert bool(((prim >= 0) & (prim < 12)).all()), int(((prim < 0) | (prim >= 12)).sum())
             else:
                 assert bool(((prim.numpy() >= 0) & (t.double().numpy() <= dist * (1 + 1e-5))).all())
+
+
+def _room_of_balls(n_balls):
+    """_small_scene()'s cube, quad and decal with `n_balls` small spheres in a grid around
+    them: a tree of several nodes (the spheres spread out)."""
+    d = {"type": "scene",
+         "box": {"type": "cube", "to_world": tr.Transform.translate([0.5, 0, 0]).scale(0.5)},
+         "quad": {"type": "rectangle", "to_world": tr.Transform.translate([0, -1, 0]).rotate([1, 0, 0], -90).scale(3)},
+         "decal": {"type": "rectangle", "to_world": tr.Transform.translate([-1, -1, 1]).rotate([1, 0, 0], -90).scale(0.75)}}
+    for i in range(n_balls):
+        x, z = -2.5 + 5.0 * (i % 6) / 5, -2.5 + 5.0 * (i // 6) / 5
+        d[f"ball{i}"] = {"type": "sphere", "center": [x, -0.7 + 0.1 * (i % 3), z], "radius": 0.3}
+    return tr.load_dict(d)
+
+
+def test17_small_trees_of_several_nodes_are_flat():
+    # A few primitives in a tree of several nodes (16 triangles and 20 spheres: a room of
+    # balls) are tested in lanes too (BVH::flat beyond one node, up to FlatSpheres spheres),
+    # without quads (their boxes are widened in the root's leaves only): the closest hits and
+    # the blocked rays are the traversal's bit for bit. With more spheres than FlatSpheres the
+    # tree is traversed.
+    scene = _room_of_balls(20)
+    assert scene._native.bvh_node_count > 1 and scene._native.bvh_flat
+    rng = np.random.default_rng(17)
+    args = _small_scene_rays(rng)
+    flat = tr._C.closest_hits(scene._native, *args, True)
+    traversal = tr._C.closest_hits(scene._native, *args, False)
+    assert int((traversal[1] >= 16).sum()) > 300 and int(((traversal[1] >= 0) & (traversal[1] < 16)).sum()) > 1000
+    for a, b in zip(flat, traversal):
+        assert torch.equal(a.nan_to_num(), b.nan_to_num())
+    # Shadow rays, and each ending a rounding before, at or after its nearest hit: where it
+    # ends a rounding past a hit within a rounding of its leaf's box, the lanes may find the
+    # hit that the traversal's box test leaves out (as test05's, on the decal).
+    t_hit = traversal[0].double()
+    for scale in (None, 1 - 1e-6, 1.0, 1 + 1e-6):
+        ends = args[3] if scale is None else torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
+        rays = [args[0], args[1], args[2], ends]
+        blocked = tr._C.occluded_rays(scene._native, *rays, True)
+        by_traversal = tr._C.occluded_rays(scene._native, *rays, False, traversal=True)
+        if scale is None or scale <= 1:
+            assert torch.equal(blocked, by_traversal)
+        else:
+            apart = blocked != by_traversal
+            assert int(apart.sum()) <= 5 and bool(blocked[apart].all())
+        assert int(blocked.sum()) > (1000 if scale is None or scale > 1 else -1)
+    assert not _room_of_balls(33)._native.bvh_flat  # (FlatSpheres: 32)

@@ -945,3 +945,19 @@ def test30_direct_with_several_samples_takes_the_lanes(tmp_path, monkeypatch, in
     grads, lanes, taped = backward(scene, ["floor.bsdf.reflectance.value"], spp=4)
     assert lanes == 0 and taped == 21 * 13 * 4
     assert float(grads["floor.bsdf.reflectance.value"].abs().max()) > 0
+
+
+def test31_room_of_balls_is_a_flat_tree_of_several_nodes(tmp_path, monkeypatch):
+    # Twenty balls on the room's floor (diffuse, glass and rough metal) make a tree of several
+    # nodes whose primitives are few (BVH::flat beyond one node): its rays are tested in
+    # lanes, and the image is path_li's bit for bit.
+    d = room_dict(tmp_path, {"max_depth": 5})
+    bsdfs = [{"type": "diffuse"}, {"type": "dielectric"}, {"type": "roughconductor", "alpha": 0.2}]
+    for i in range(20):
+        d[f"ball{i}"] = {"type": "sphere", "radius": 0.06, "center": [-0.8 + 0.4 * (i % 5), 0.06, -0.8 + 0.45 * (i // 5)],
+                         "bsdf": bsdfs[i % 3]}
+    scene = tr.load_dict(d)
+    assert scene._native.bvh_flat and scene._native.bvh_node_count > 1
+    wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
