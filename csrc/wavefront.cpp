@@ -1718,6 +1718,35 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
     }
 }
 
+/// The paths of lanes [0, n) whose ray escaped, but for those at their last vertex (`last`
+/// 1: the shade loop's), end here in SIMD lanes, with the emission of the `constant`
+/// environment if the scene has one (`sky`: its radiance Le, and em_pdf, the density of its
+/// emitter samples: emission_found()'s operations, the throughput 1 for a camera ray,
+/// nothing for one with `hide`): unshaded, and marked in `ended` (1, else 0) for the shade
+/// loop to pass over. (Renders without a parameter log: the shade loop keeps the emission
+/// records.) Open scenes' paths mostly end so (spheres under the sky: 2.4 rays per sample).
+void sky_stage(Batch &b, int n, bool sky, const Color3f &Le, float em_pdf, bool hide, int max_depth, int *ended) {
+    const float on = sky ? 1.f : 0.f, hidden_at_0 = hide ? 1.f : 0.f;
+    const float Lr = Le.v[0], Lg = Le.v[1], Lb = Le.v[2];
+    const int last_from = max_depth >= 0 ? max_depth : INT_MAX;  // (depth + 1 >= it: the last vertex)
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const int escaped = b.prim[k] == ~0u ? 1 : 0;
+        const int end = escaped != 0 && b.depth[k] + 1 < last_from ? 1 : 0;
+        const bool camera = b.depth[k] == 0;
+        const float add = end != 0 ? (camera ? on * (1.f - hidden_at_0) : on) : 0.f;
+        const float w = mis_weight(b.prev_pdf[k], b.prev_delta[k] != 0 ? 0.f : em_pdf);
+        const float br = camera ? 1.f : b.br[k], bg = camera ? 1.f : b.bg[k], bb = camera ? 1.f : b.bb[k];
+        b.Lr[k] = add != 0.f ? b.Lr[k] + br * Lr * w : b.Lr[k];
+        b.Lg[k] = add != 0.f ? b.Lg[k] + bg * Lg * w : b.Lg[k];
+        b.Lb[k] = add != 0.f ? b.Lb[k] + bb * Lb * w : b.Lb[k];
+        b.shade[k] = end != 0 ? 0 : b.shade[k];
+        b.mat[k] = end != 0 ? 0 : b.mat[k];
+        b.record_rough[k] = end != 0 ? -1 : b.record_rough[k];
+        ended[k] = end;
+    }
+}
+
 /// Lane k's surface interaction, from its columns.
 SurfaceInteraction load_interaction(const Batch &b, int k, const Geometry &g) {
     SurfaceInteraction si;
@@ -2021,6 +2050,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     };
     auto is_last = [&](int k) { return cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth; };
     const Geometry &g = scene.geometry;
+    // The `constant` environment's radiance and the density of its emitter samples
+    // (emitter_eval(), emitter_pdf()), for sky_stage.
+    const Color3f env_radiance = ws.environment ? Color3f(ctx.params.spectrum(scene.emitters[size_t(scene.environment)].radiance)) : Color3f(0.f);
+    const float env_pdf = 1.f / float(scene.emitters.size()) * InvFourPi;
     while (n > 0) {
         int n_last = 0;
         for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
@@ -2065,15 +2098,22 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // parameter log or whose log's watched inputs exclude_watched_inputs() left out.)
         const bool quick = !log || log->watched == ws.quick_watched;
         if (quick) quick_shade_stage(b, n, ws, log ? record : nullptr);
+        // The rays that escaped end in lanes without a parameter log (sky_stage), unless an
+        // environment other than `constant` emits.
+        alignas(64) int visit[B], visit_lanes[B], sky_ended[B];
+        const bool sky_lanes = !log && (scene.environment < 0 || ws.environment);
+        if (sky_lanes) sky_stage(b, n, ws.environment, env_radiance, env_pdf, cfg.hide_emitters, cfg.max_depth, sky_ended);
+        else std::fill(sky_ended, sky_ended + n, 0);
         // The lanes this loop visits (listed in lanes: a branch per lane mispredicts): those
-        // at their last vertex among others that go on, and those the quick stage left.
-        alignas(64) int visit[B], visit_lanes[B];
-        const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0;
+        // at their last vertex among others that go on, and those the quick stage left, but
+        // for those sky_stage ended.
+        const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0, sky_set = sky_lanes ? 1 : 0;
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
             const int last = is_last(k) ? any_last : 0;
             const int set_up = b.shade[k] != 0 ? quick_set : 0;
-            visit[k] = last != 0 || set_up == 0 ? 1 : 0;
+            const int ended = sky_ended[k] != 0 ? sky_set : 0;
+            visit[k] = (last != 0 || set_up == 0) && ended == 0 ? 1 : 0;
         }
         const int n_visit = simd::select_indices(visit, n, 1, visit_lanes);
         for (int j = 0; j < n_visit; ++j) {

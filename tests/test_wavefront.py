@@ -961,3 +961,30 @@ def test31_room_of_balls_is_a_flat_tree_of_several_nodes(tmp_path, monkeypatch):
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
+
+
+@pytest.mark.parametrize("integrator", [{"type": "path", "max_depth": 4}, {"type": "path", "hide_emitters": True},
+                                        {"type": "direct", "shading_samples": 3},
+                                        {"type": "direct", "shading_samples": 3, "hide_emitters": True}])
+def test32_rays_that_escape_end_in_lanes(tmp_path, monkeypatch, integrator):
+    # Balls on a floor under the sky, seen against it: the rays that escape end in SIMD
+    # lanes (sky_stage) with the sky's emission, MIS-weighted, for a camera ray with
+    # throughput 1 (also for `direct`'s sub-paths, whose throughput is 1/n) and none where
+    # hide_emitters hides it: the image is the scalar integrator's bit for bit.
+    d = room_dict(tmp_path, integrator)
+    d = {k: v for k, v in d.items() if not isinstance(v, dict) or v.get("type") not in ("rectangle", "obj")}
+    d["floor"] = {"type": "rectangle", "to_world": tr.Transform.rotate([1, 0, 0], -90).scale(1.5), "bsdf": {"type": "diffuse"}}
+    d["ball"] = {"type": "sphere", "radius": 0.3, "center": [-0.2, 0.3, 0.1], "bsdf": {"type": "diffuse"}}
+    d["metal"] = {"type": "sphere", "radius": 0.2, "center": [0.4, 0.2, 0.3],
+                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}}
+    d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.4, 0.6]}}
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=6, seed=2)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    # The sky seen directly fills a part of the image, or is hidden there.
+    seen = tr.render(tr.load_dict({**d, "integrator": {**integrator, "hide_emitters": not integrator.get("hide_emitters", False)}}),
+                     spp=6, seed=2)
+    assert not torch.equal(seen, scalar)
+    background = (scalar if integrator.get("hide_emitters") else seen).sum(-1) == 0
+    assert int(background.sum()) > 20
