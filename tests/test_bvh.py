@@ -333,6 +333,16 @@ def test08_shadow_rays_past_spheres_are_blocked_where_the_closest_hit_lies_insid
         assert not bool(tr._C.occluded_rays(scene._native, *empty, columns).any())
 
 
+def _ending_near_hits(args, t_hit):
+    """(scale, rays): the rays `args` (o, d, tmin, tmax) as they are (scale None), and each
+    ending a rounding before, at or after its nearest hit t_hit, where the box tests
+    decide (scale 1 - 1e-6, 1, 1 + 1e-6; the rays without a hit as they are)."""
+    t_hit = t_hit.double()
+    for scale in (None, 1 - 1e-6, 1.0, 1 + 1e-6):
+        ends = args[3] if scale is None else torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
+        yield scale, [args[0], args[1], args[2], ends]
+
+
 @one_node_small_scene
 @pytest.mark.parametrize("far_cube", [False, True])
 def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
@@ -372,10 +382,7 @@ def test09_one_node_shortcuts_are_the_traversals_bitwise(far_cube):
         # rounding before or after it, where the box tests decide). Also through the
         # children each ray enters, found for a batch in lanes (BVH::root_masks, then
         # occluded_children: the wavefront's shadow rays in these scenes).
-        t_hit = traversal[0].double()
-        for scale in (None, 1 - 1e-6, 1.0, 1 + 1e-6):
-            ends = args[3] if scale is None else torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
-            rays = [args[0], args[1], args[2], ends]
+        for scale, rays in _ending_near_hits(args, traversal[0]):
             blocked = tr._C.occluded_rays(scene._native, *rays, False)
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, traversal=True))
             assert torch.equal(blocked, tr._C.occluded_rays(scene._native, *rays, False, masks=True))
@@ -783,10 +790,7 @@ def test17_small_trees_of_several_nodes_are_flat():
     # Shadow rays, and each ending a rounding before, at or after its nearest hit: where it
     # ends a rounding past a hit within a rounding of its leaf's box, the lanes may find the
     # hit that the traversal's box test leaves out (as test05's, on the decal).
-    t_hit = traversal[0].double()
-    for scale in (None, 1 - 1e-6, 1.0, 1 + 1e-6):
-        ends = args[3] if scale is None else torch.where(torch.isfinite(t_hit), t_hit * scale, args[3].double()).float()
-        rays = [args[0], args[1], args[2], ends]
+    for scale, rays in _ending_near_hits(args, traversal[0]):
         blocked = tr._C.occluded_rays(scene._native, *rays, True)
         by_traversal = tr._C.occluded_rays(scene._native, *rays, False, traversal=True)
         if scale is None or scale <= 1:
