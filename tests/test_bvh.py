@@ -772,6 +772,8 @@ def _room_of_balls(n_balls):
     return tr.load_dict(d)
 
 
+@pytest.mark.skipif(tr._C.build_isa == "sse2", reason="with the 4-wide nodes of a PORTABLE=1 build the room's root "
+                    "has leaves of triangles only, and the tree is searched in two phases (test10)")
 def test17_small_trees_of_several_nodes_are_flat():
     # A few primitives in a tree of several nodes (16 triangles and 20 spheres: a room of
     # balls) are tested in lanes too (BVH::flat beyond one node, up to FlatSpheres spheres),
