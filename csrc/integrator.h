@@ -33,8 +33,8 @@ struct IntegratorSettings {
 /// emitter samples and n BSDF samples (or n of one kind and none of the other), which
 /// direct_li computes as n paths of two vertices from the camera ray's first vertex (path_li
 /// with max_depth 2 and no roulette, sub_paths n: their throughput starts at 1/n, and only the
-/// first adds the emission the camera ray found). With one of each, the MIS weights are
-/// Mitsuba's direct's (whose factors 1/2 and 1/2 cancel exactly); with one kind alone, the
+/// first adds the emission the camera ray found). With n of each, the MIS weights are
+/// Mitsuba's direct's (whose fractions n / 2n of each technique cancel); with one kind alone, the
 /// other technique's density in the MIS weight is times 0 (emitter_sampling, bsdf_sampling),
 /// as in direct's (its factor is 0). Nothing for other `direct` settings (unequal nonzero
 /// counts), which direct_li samples as Mitsuba's direct: all emitter samples, then all BSDF

@@ -2052,7 +2052,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     const Geometry &g = scene.geometry;
     // The `constant` environment's radiance and the density of its emitter samples
     // (emitter_eval(), emitter_pdf()), for sky_stage.
-    const Color3f env_radiance = ws.environment ? Color3f(ctx.params.spectrum(scene.emitters[size_t(scene.environment)].radiance)) : Color3f(0.f);
+    const Color3f env_radiance =
+        ws.environment ? Color3f(ctx.params.spectrum(scene.emitters[size_t(scene.environment)].radiance)) : Color3f(0.f);
     const float env_pdf = 1.f / float(scene.emitters.size()) * InvFourPi;
     while (n > 0) {
         int n_last = 0;
@@ -2102,8 +2103,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // environment other than `constant` emits.
         alignas(64) int visit[B], visit_lanes[B], sky_ended[B];
         const bool sky_lanes = !log && (scene.environment < 0 || ws.environment);
-        if (sky_lanes) sky_stage(b, n, ws.environment, env_radiance, env_pdf, cfg.hide_emitters, cfg.max_depth, sky_ended);
-        else std::fill(sky_ended, sky_ended + n, 0);
+        if (sky_lanes) {
+            sky_stage(b, n, ws.environment, env_radiance, env_pdf, cfg.hide_emitters, cfg.max_depth, sky_ended);
+        } else {
+            std::fill(sky_ended, sky_ended + n, 0);
+        }
         // The lanes this loop visits (listed in lanes: a branch per lane mispredicts): those
         // at their last vertex among others that go on, and those the quick stage left, but
         // for those sky_stage ended.
