@@ -1890,10 +1890,13 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         /// and its closest hit, the sub-paths it has finished, and its stream where the last
         /// one ended; and the samples whose next sub-path waits for a drained batch, from
         /// again[again_next] on.
-        std::vector<Ray> camera_rays;
-        std::vector<Hit> first_hits;
-        std::vector<int> subs;
-        std::vector<uint64_t> states, incs;
+        struct SubPaths {
+            Ray camera_ray;
+            Hit first_hit;
+            int done = 0;
+            uint64_t state = 0, inc = 0;
+        };
+        std::vector<SubPaths> subs;
         std::vector<int> again;
     };
     static thread_local std::unique_ptr<Buffers> buffers_storage;
@@ -1904,11 +1907,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     Sampler::Parts *const parts = ws.predrawn ? buffers.parts.data() : nullptr;
     int *const side_lane = buffers.side_lane;
     const bool sub_paths = cfg.sub_paths > 1;
-    if (sub_paths && buffers.subs.size() < size_t(n_samples)) {
-        buffers.camera_rays.resize(size_t(n_samples)), buffers.first_hits.resize(size_t(n_samples));
-        buffers.subs.resize(size_t(n_samples));
-        buffers.states.resize(size_t(n_samples)), buffers.incs.resize(size_t(n_samples));
-    }
+    if (sub_paths && buffers.subs.size() < size_t(n_samples)) buffers.subs.resize(size_t(n_samples));
     std::vector<int> &again = buffers.again;
     size_t again_next = 0;
     again.clear();
@@ -1975,8 +1974,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             reset_lane(k, next + (k - first));
         }
         for (int k = first; sub_paths && k < first + m; ++k) {
-            buffers.camera_rays[size_t(b.seq[k])] = load_ray(b, k);
-            buffers.subs[size_t(b.seq[k])] = 0;
+            Buffers::SubPaths &sub = buffers.subs[size_t(b.seq[k])];
+            sub.camera_ray = load_ray(b, k);
+            sub.done = 0;
         }
         next += m;
     };
@@ -1987,9 +1987,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto start_again = [&](int first, int m) {
         for (int k = first; k < first + m; ++k) {
             const int seq = again[again_next++];
-            store_ray(b, k, buffers.camera_rays[size_t(seq)],
-                      Sampler::independent(buffers.states[size_t(seq)], buffers.incs[size_t(seq)]));
-            const Hit &hit = buffers.first_hits[size_t(seq)];
+            const Buffers::SubPaths &sub = buffers.subs[size_t(seq)];
+            store_ray(b, k, sub.camera_ray, Sampler::independent(sub.state, sub.inc));
+            const Hit &hit = sub.first_hit;
             b.ht[k] = hit.t, b.hu[k] = hit.u, b.hv[k] = hit.v, b.prim[k] = hit.prim;
             b.Lr[k] = L[seq][0], b.Lg[k] = L[seq][1], b.Lb[k] = L[seq][2];
             reset_lane(k, seq);
@@ -2021,15 +2021,16 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         const int seq = b.seq[k];
         L[seq] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]);
         if (!sub_paths || (b.depth[k] == 0 && b.prim[k] == ~0u)) return;
-        if (++buffers.subs[size_t(seq)] == cfg.sub_paths) return;
-        buffers.states[size_t(seq)] = b.state[k], buffers.incs[size_t(seq)] = b.inc[k];
+        Buffers::SubPaths &sub = buffers.subs[size_t(seq)];
+        if (++sub.done == cfg.sub_paths) return;
+        sub.state = b.state[k], sub.inc = b.inc[k];
         again.push_back(seq);
     };
     // Whether the emission lane k's ray finds is dropped: seen directly by the camera with
     // hide_emitters, or found again by a later sub-path's camera ray. The throughput that
     // weights it: 1 for a camera ray.
     auto hidden = [&](int k) {
-        return b.depth[k] == 0 && (cfg.hide_emitters || (sub_paths && buffers.subs[size_t(b.seq[k])] > 0));
+        return b.depth[k] == 0 && (cfg.hide_emitters || (sub_paths && buffers.subs[size_t(b.seq[k])].done > 0));
     };
     auto found_beta = [&](int k) {
         return b.depth[k] == 0 ? RGB<float>(1.f) : RGB<float>(b.br[k], b.bg[k], b.bb[k]);
@@ -2050,11 +2051,15 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     };
     auto is_last = [&](int k) { return cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth; };
     const Geometry &g = scene.geometry;
-    // The `constant` environment's radiance and the density of its emitter samples
-    // (emitter_eval(), emitter_pdf()), for sky_stage.
-    const Color3f env_radiance =
-        ws.environment ? Color3f(ctx.params.spectrum(scene.emitters[size_t(scene.environment)].radiance)) : Color3f(0.f);
-    const float env_pdf = 1.f / float(scene.emitters.size()) * InvFourPi;
+    // The `constant` environment's radiance and the density of its emitter samples, for
+    // sky_stage (the same for every escaped ray).
+    Color3f env_radiance(0.f);
+    float env_pdf = 0.f;
+    if (ws.environment) {
+        const Emitter &e = scene.emitters[size_t(scene.environment)];
+        env_radiance = Color3f(emitter_eval<RGB<float>>(ctx, e, SurfaceInteraction()));
+        env_pdf = emitter_pdf(ctx, e, Vec3{}, SurfaceInteraction());
+    }
     while (n > 0) {
         int n_last = 0;
         for (int k = 0; k < n; ++k) n_last += is_last(k) ? 1 : 0;
@@ -2071,7 +2076,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             rays_traced += uint64_t(traced);
             // (A first sub-path keeps its camera ray's hit for the others.)
             for (int k = 0; sub_paths && k < traced; ++k) {
-                if (b.depth[k] == 0) buffers.first_hits[size_t(b.seq[k])] = Hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
+                if (b.depth[k] == 0) buffers.subs[size_t(b.seq[k])].first_hit = Hit{b.ht[k], b.prim[k], b.hu[k], b.hv[k]};
             }
         }
         known_hits = 0;
@@ -2111,13 +2116,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // The lanes this loop visits (listed in lanes: a branch per lane mispredicts): those
         // at their last vertex among others that go on, and those the quick stage left, but
         // for those sky_stage ended.
-        const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0, sky_set = sky_lanes ? 1 : 0;
+        const int any_last = n_last > 0 ? 1 : 0, quick_set = quick ? 1 : 0;
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
             const int last = is_last(k) ? any_last : 0;
             const int set_up = b.shade[k] != 0 ? quick_set : 0;
-            const int ended = sky_ended[k] != 0 ? sky_set : 0;
-            visit[k] = (last != 0 || set_up == 0) && ended == 0 ? 1 : 0;
+            visit[k] = (last != 0 || set_up == 0) && sky_ended[k] == 0 ? 1 : 0;
         }
         const int n_visit = simd::select_indices(visit, n, 1, visit_lanes);
         for (int j = 0; j < n_visit; ++j) {

@@ -29,7 +29,7 @@
 // the other from the camera ray's first hit), with any sampler (each vertex's
 // numbers are drawn in one stage before the others, by Sampler one lane at a time for the
 // samplers other than `independent`: WavefrontScene::predrawn),
-// when the scene has a triangle and some BSDF is one of those; other scenes, and the autodiff number types, take
+// when some BSDF of the scene is one of those; other scenes, and the autodiff number types, take
 // path_li. render_bwd also traces its paths with
 // it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX
 // conductors' roughness (WavefrontVertex).
