@@ -458,29 +458,64 @@ py::tuple bsdf_query(const Scene &scene, const std::vector<torch::Tensor> &param
 // ---- Sensor and sampler queries, for tests --------------------------------------------
 
 /// The numbers the sensor's sampler gives pixel `pixel` (row-major index in the full film):
-/// for each of its samples, one draw per entry of `dims` (1: next_1d, 2: next_2d), the
-/// values concatenated. Returns a (sample_count, sum(dims)) float32 tensor.
+/// for each of its samples, one draw per entry of `dims` (1: next_1d, 2: next_2d; -1 and -2:
+/// the same drawn by the even samples alone, the odd ones' entries 0), the values
+/// concatenated. With `lanes`, the pixel's samples are drawn together by SamplerColumns (up
+/// to its capacity at a time) rather than one by one by Sampler. Returns a
+/// (sample_count, sum(|dims|)) float32 tensor.
 torch::Tensor sampler_points(const py::dict &camera, int spp, uint64_t seed, uint64_t pixel,
-                             const std::vector<int> &dims) {
+                             const std::vector<int> &dims, bool lanes) {
     Camera cam = make_camera(camera);
     RenderRequest req = whole_image(cam, spp, seed);
     int width = 0;
     for (int d : dims) {
-        if (d != 1 && d != 2) fail("dims entries must be 1 or 2");
-        width += d;
+        if (d == 0 || d < -2 || d > 2) fail("dims entries must be 1 or 2, or -1 or -2");
+        width += std::abs(d);
     }
-    torch::Tensor out = torch::empty({req.spp, width});
+    torch::Tensor out = torch::zeros({req.spp, width});
     float *o = out.data_ptr<float>();
-    for (int s = 0; s < req.spp; ++s) {
-        Sampler sampler(cam.sampler, seed, pixel, uint64_t(s));
-        for (int d : dims) {
-            if (d == 1) {
-                *o++ = sampler.next_1d();
-            } else {
-                Vec2 u = sampler.next_2d();
-                *o++ = u.x;
-                *o++ = u.y;
+    if (!lanes) {
+        for (int s = 0; s < req.spp; ++s, o += width) {
+            Sampler sampler(cam.sampler, seed, pixel, uint64_t(s));
+            int column = 0;
+            for (int d : dims) {
+                const bool draws = d > 0 || s % 2 == 0;
+                if (std::abs(d) == 1 && draws) {
+                    o[column] = sampler.next_1d();
+                } else if (draws) {
+                    Vec2 u = sampler.next_2d();
+                    o[column] = u.x, o[column + 1] = u.y;
+                }
+                column += std::abs(d);
             }
+        }
+        return out;
+    }
+    if (cam.sampler.type == SamplerType::Independent) fail("lanes: a sampler other than independent");
+    const PixelSeed pixel_seed(seed, pixel);
+    auto columns = std::make_unique<SamplerColumns>();
+    constexpr int C = SamplerColumns::Capacity;
+    std::vector<uint64_t> keys(C, pixel_seed.stream);
+    std::vector<int> even(C);
+    std::vector<float> ux(C), uy(C);
+    for (int first = 0; first < req.spp; first += C) {
+        const int n = std::min(C, req.spp - first);
+        for (int k = 0; k < n; ++k) {
+            columns->seq[k] = pixel_seed.sequence, columns->index[k] = uint32_t(first + k);
+            even[k] = (first + k) % 2 == 0;
+        }
+        columns->begin(cam.sampler, n, keys.data());
+        int column = 0;
+        for (int d : dims) {
+            const int *draw = d > 0 ? nullptr : even.data();
+            if (std::abs(d) == 1) columns->next_1d(cam.sampler, n, draw, ux.data());
+            else columns->next_2d(cam.sampler, n, draw, ux.data(), uy.data());
+            for (int k = 0; k < n; ++k) {
+                if (d < 0 && !even[k]) continue;
+                o[(first + k) * width + column] = ux[k];
+                if (std::abs(d) == 2) o[(first + k) * width + column + 1] = uy[k];
+            }
+            column += std::abs(d);
         }
     }
     return out;
@@ -1018,7 +1053,7 @@ PYBIND11_MODULE(_C, m) {
           "The samples per pixel a render at `spp` takes: the sensor's sampler rounds it as "
           "Mitsuba's set_sample_count does (stratified to a square, ...).");
     m.def("sampler_points", &sampler_points, py::arg("camera"), py::arg("spp"), py::arg("seed"),
-          py::arg("pixel"), py::arg("dims"));
+          py::arg("pixel"), py::arg("dims"), py::arg("lanes") = false);
     m.def("camera_rays", &camera_rays, py::arg("camera"), py::arg("positions"), py::arg("apertures"));
     m.def("filter_weights", &filter_weights, py::arg("camera"), py::arg("x0"), py::arg("n"));
 }

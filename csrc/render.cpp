@@ -5,6 +5,7 @@
 #include <array>
 #include <atomic>
 #include <cassert>
+#include <memory>
 #include <mutex>
 
 namespace rbpt {
@@ -1111,12 +1112,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // bitwise reproducible for a given number of workers, and each tile's paths are
         // shared among the workers (whose loads stay even when some tiles cost more).
         // (The pixels' seeds are kept per tile: a worker's units run through a tile's samples.
-        // In lanes the unit's positions are drawn first: the independent sampler's in SIMD
-        // lanes, the others' one pixel at a time by Sampler.)
+        // With lanes the unit's positions are drawn first, in SIMD lanes.)
         int64_t n_units = int64_t(n_tiles) * req.spp;
         std::vector<PixelSeed> tile_seeds;
         std::vector<uint64_t> tile_streams, tile_index;
         std::vector<float> tile_u0, tile_u1;
+        std::unique_ptr<SamplerColumns> tile_columns;
         SplatWeights tile_weights(camera.filter);
         int seeds_of = -1;
         for (int64_t unit = w; unit < n_units; unit += n_workers) {
@@ -1136,10 +1137,17 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 independent_first_2d(int(tile_seeds.size()), tile_streams.data(), tile_index.data(), tile_u0.data(),
                                      tile_u1.data());
             }
-            for (size_t i = 0; lanes_ctx && !independent && i < tile_seeds.size(); ++i) {
-                Sampler sampler(camera.sampler, tile_seeds[i], uint64_t(s));
-                const Vec2 u = sampler.next_2d();  // (Camera::sample_position's)
-                tile_u0[i] = u.x, tile_u1[i] = u.y;
+            // (The others' by SamplerColumns, Camera::sample_position's next_2d.)
+            constexpr int C = SamplerColumns::Capacity;
+            for (size_t first = 0; lanes_ctx && !independent && first < tile_seeds.size(); first += C) {
+                const int m = int(std::min(tile_seeds.size() - first, size_t(C)));
+                if (!tile_columns) tile_columns = std::make_unique<SamplerColumns>();
+                for (int i = 0; i < m; ++i) {
+                    tile_columns->seq[i] = tile_seeds[first + size_t(i)].sequence;
+                    tile_columns->index[i] = uint32_t(s);
+                }
+                tile_columns->begin(camera.sampler, m, tile_streams.data() + first);
+                tile_columns->next_2d(camera.sampler, m, nullptr, tile_u0.data() + first, tile_u1.data() + first);
             }
             // Their filter weights at once, where the tile's pixels fit a batch (they do but
             // under filters wider than 8 pixels, whose tiles are larger).

@@ -32,39 +32,68 @@ inline void tea(uint32_t &v0, uint32_t &v1, int rounds = 4) {
     }
 }
 
+/// The smallest 2^k - 1 at least x.
+RBPT_INLINE uint32_t pow2_mask(uint32_t x) {
+    x |= x >> 1;
+    x |= x >> 2;
+    x |= x >> 4;
+    x |= x >> 8;
+    x |= x >> 16;
+    return x;
+}
+
+/// One round of Kensler's permutation hash, a bijection of [0, w] (w + 1 a power of two).
+RBPT_INLINE uint32_t kensler_round(uint32_t index, uint32_t w, uint32_t seed) {
+    index ^= seed;
+    index *= 0xe170893d;
+    index ^= seed >> 16;
+    index ^= (index & w) >> 4;
+    index ^= seed >> 8;
+    index *= 0x0929eb3f;
+    index ^= seed >> 23;
+    index ^= (index & w) >> 1;
+    index *= 1 | seed >> 27;
+    index *= 0x6935fa69;
+    index ^= (index & w) >> 11;
+    index *= 0x74dcb303;
+    index ^= (index & w) >> 2;
+    index *= 0x9e501cc3;
+    index ^= (index & w) >> 2;
+    index *= 0xc860a3df;
+    index &= w;
+    index ^= index >> 5;
+    return index;
+}
+
 /// Element `index` of a pseudo-random permutation of {0, ..., n - 1} chosen by `seed`
 /// (Kensler 2013, "Correlated Multi-Jittered Sampling": a hash bijective on the next power of
 /// two, cycle-walked until it lands below n).
 inline uint32_t permute_kensler(uint32_t index, uint32_t n, uint32_t seed) {
     if (n <= 1) return 0;
-    uint32_t w = n - 1;
-    w |= w >> 1;
-    w |= w >> 2;
-    w |= w >> 4;
-    w |= w >> 8;
-    w |= w >> 16;
-    do {
-        index ^= seed;
-        index *= 0xe170893d;
-        index ^= seed >> 16;
-        index ^= (index & w) >> 4;
-        index ^= seed >> 8;
-        index *= 0x0929eb3f;
-        index ^= seed >> 23;
-        index ^= (index & w) >> 1;
-        index *= 1 | seed >> 27;
-        index *= 0x6935fa69;
-        index ^= (index & w) >> 11;
-        index *= 0x74dcb303;
-        index ^= (index & w) >> 2;
-        index *= 0x9e501cc3;
-        index ^= (index & w) >> 2;
-        index *= 0xc860a3df;
-        index &= w;
-        index ^= index >> 5;
-    } while (index >= n);
+    const uint32_t w = pow2_mask(n - 1);
+    do index = kensler_round(index, w, seed);
+    while (index >= n);
     return (index + seed) % n;
 }
+
+/// x / d and x % d for a divisor d that many SIMD lanes share (x / d < 2^31), with no division
+/// instruction (x86 has no vector one): the quotient estimated in double and corrected. The
+/// results of / and %, exactly.
+struct Divisor {
+    uint32_t d;
+    double inv;
+    explicit Divisor(uint32_t d) : d(d), inv(1.0 / double(d)) {}
+    RBPT_INLINE uint32_t quotient(uint32_t x) const {
+        // x * inv lies within (x / d) 2^-52 < 2^-20 / d of x / d, closer than the next whole
+        // number above it: q is floor(x / d), or one less where x / d is whole and the
+        // product rounded below it. (double(x) and back through int32, whose conversions
+        // AVX2 has in lanes.)
+        const double xd = double(int32_t(x ^ 0x80000000u)) + 2147483648.0;
+        const uint32_t q = uint32_t(int32_t(xd * inv));
+        return x - q * d >= d ? q + 1 : q;
+    }
+    RBPT_INLINE uint32_t remainder(uint32_t x) const { return x - quotient(x) * d; }
+};
 
 /// Element `index` of a pseudo-random permutation of {0, ..., n - 1}, n a power of two: a
 /// shuffle network of TEA-decided swaps, one level per bit (Mitsuba's `permute`).
@@ -192,6 +221,18 @@ struct PixelSeed {
     }
 };
 
+/// The permutation seed of dimension `dim` of the pixel of permutation seed `sequence`
+/// (PixelSeed's). Unlike Mitsuba's `seed + dim`, hashed: Kensler's and the TEA shuffle's
+/// permutations of neighbouring seeds are correlated, which couples dimensions (e.g. the
+/// pixel position with the light sample); see MITSUBA_FACTS.md, section m.
+RBPT_INLINE uint32_t dimension_seed(uint32_t sequence, uint32_t dim) {
+    uint64_t h = mix64((uint64_t(sequence) << 32) | dim);
+    return uint32_t(h ^ (h >> 32));
+}
+
+/// (cell + offset) / n, kept below 1 (float rounding could reach it).
+RBPT_INLINE float scaled_below_one(float x, float inv_n) { return std::min(x * inv_n, 0x1.fffffep-1f); }
+
 /// The sample generator of one (seed, pixel, sample) triple. Its own PCG32 stream (O'Neill
 /// 2014) is the `independent` sampler and the jitter of the stratified kinds; the stratified
 /// kinds (dispatched by a switch, no virtual call) advance a dimension counter with every
@@ -271,8 +312,6 @@ public:
     }
 
 private:
-    static constexpr float OneMinusEpsilon = 0x1.fffffep-1f;
-
     Sampler() = default;
 
     /// The PCG32 stream of sample `sample` of the pixel whose stream key is `key`.
@@ -280,17 +319,7 @@ private:
 
     float jitter() { return desc_->jitter ? uniform() : 0.5f; }
 
-    /// The permutation seed of dimension `dim` of this pixel. Unlike Mitsuba's
-    /// `seed + dim`, hashed: Kensler's and the TEA shuffle's permutations of neighbouring
-    /// seeds are correlated, which couples dimensions (e.g. the pixel position with the
-    /// light sample); see MITSUBA_FACTS.md, section m.
-    uint32_t dim_seed(uint32_t dim) const {
-        uint64_t h = mix64((uint64_t(seq_) << 32) | dim);
-        return uint32_t(h ^ (h >> 32));
-    }
-
-    /// (cell + offset) / n, kept below 1 (float rounding could reach it).
-    static float scaled(float x, float inv_n) { return std::min(x * inv_n, OneMinusEpsilon); }
+    uint32_t dim_seed(uint32_t dim) const { return dimension_seed(seq_, dim); }
 
     // Out of line (noinline at their definitions): the independent sampler's hot path stays
     // a compare and a PCG step.
@@ -313,9 +342,9 @@ private:
     uint32_t n = d.sample_count;
     switch (d.type) {
         case SamplerType::Stratified:
-            return scaled(float(permute_kensler(index_, n, seed)) + jitter(), 1.f / float(n));
+            return scaled_below_one(float(permute_kensler(index_, n, seed)) + jitter(), 1.f / float(n));
         case SamplerType::Multijitter:
-            return scaled(float(permute_kensler(index_, n, seed * 0x45fbe943u)) + jitter(),
+            return scaled_below_one(float(permute_kensler(index_, n, seed * 0x45fbe943u)) + jitter(),
                           1.f / float(n));
         case SamplerType::LowDiscrepancy:
             return radical_inverse_2(permute_pow2(index_, n, seed), aux_[0]);
@@ -340,7 +369,7 @@ private:
             uint32_t y = p / d.res_x, x = p - y * d.res_x;
             float jx = jitter(), jy = jitter();
             float inv = 1.f / float(d.res_x);
-            return {scaled(float(x) + jx, inv), scaled(float(y) + jy, inv)};
+            return {scaled_below_one(float(x) + jx, inv), scaled_below_one(float(y) + jy, inv)};
         }
         case SamplerType::Multijitter: {
             // Kensler's correlated multi-jittering: cell (x, y) of a res_x x res_y grid, and
@@ -350,8 +379,8 @@ private:
             uint32_t sx = permute_kensler(x, d.res_x, seed * 0x68bc21ebu);
             uint32_t sy = permute_kensler(y, d.res_y, seed * 0x02e5be93u);
             float jx = jitter(), jy = jitter();
-            return {scaled(float(x * d.res_y + sy) + jx, 1.f / float(n)),
-                    scaled(float(y * d.res_x + sx) + jy, 1.f / float(n))};
+            return {scaled_below_one(float(x * d.res_y + sy) + jx, 1.f / float(n)),
+                    scaled_below_one(float(y * d.res_x + sx) + jy, 1.f / float(n))};
         }
         case SamplerType::LowDiscrepancy: {
             uint32_t i = permute_pow2(index_, n, seed);
@@ -388,7 +417,39 @@ inline float Sampler::orthogonal_1d() {
     uint32_t seed = dim_seed(j);
     uint32_t stratum = permute_kensler(a_ij, p, seed * 0x51633e2du);
     uint32_t sub = permute_kensler(a_ik, p, seed * 0x68bc21ebu);
-    return scaled(float(stratum * p + sub) + jitter(), 1.f / float(d.sample_count));
+    return scaled_below_one(float(stratum * p + sub) + jitter(), 1.f / float(d.sample_count));
 }
+
+/// The samplers of up to Capacity samples of a stratified kind (not `independent`), one
+/// column per field of Sampler::Parts, and their draws in SIMD lanes: next_1d and next_2d of
+/// many samples at once, each its Sampler's numbers bit for bit (the permutations'
+/// cycle-walks in rounds over 16 lanes, the divisions by Divisor). The wavefront draws its
+/// vertices' numbers and its camera rays' positions with it.
+struct SamplerColumns {
+    static constexpr int Capacity = 256;
+    alignas(64) uint64_t state[Capacity], inc[Capacity];
+    alignas(64) uint32_t seq[Capacity], index[Capacity], dim[Capacity];
+    alignas(64) uint32_t aux0[Capacity], aux1[Capacity], aux2[Capacity];
+
+    void set(int k, const Sampler::Parts &p) {
+        state[k] = p.state, inc[k] = p.inc, seq[k] = p.seq, index[k] = p.index, dim[k] = p.dim;
+        aux0[k] = p.aux[0], aux1[k] = p.aux[1], aux2[k] = p.aux[2];
+    }
+    Sampler::Parts get(int k) const {
+        return {state[k], inc[k], seq[k], index[k], dim[k], {aux0[k], aux1[k], aux2[k]}};
+    }
+
+    /// Start samples k < n, sample index[k] of the pixel whose stream key is keys[k] and
+    /// whose permutation seed is seq[k] (PixelSeed's; the caller sets index and seq): as
+    /// Sampler's constructor, their streams, dimension 0, and the orthogonal array's rows or
+    /// the ldsampler's scrambles.
+    void begin(const SamplerDesc &desc, int n, const uint64_t *keys);
+
+    /// next_1d of samples k < n into u[k]. Those with draw[k] == 0 (draw null: none) do not
+    /// move on (their u[k] is written all the same).
+    void next_1d(const SamplerDesc &desc, int n, const int *draw, float *u);
+    /// next_2d of samples k < n into (ux[k], uy[k]), as next_1d.
+    void next_2d(const SamplerDesc &desc, int n, const int *draw, float *ux, float *uy);
+};
 
 }  // namespace rbpt

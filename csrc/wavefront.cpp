@@ -248,6 +248,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
 namespace {
 
 constexpr int B = WavefrontBatch;
+static_assert(SamplerColumns::Capacity >= B, "a batch's samplers fit SamplerColumns");
 /// The length of a Batch column: B entries and 16 more, unused, so that columns do not start
 /// 4 kB apart (B floats are 1 kB), where a load from one column waits on a store to another
 /// whose address has the same low 12 bits (4k aliasing). (Single thread, 256 px, 16 spp,
@@ -893,10 +894,10 @@ __attribute__((noinline)) void shadow_rays_in_lanes(Batch &b, int n, const BVH &
 /// sampling: a stream continues into `direct`'s next sub-path), and the roulette's where it
 /// applies (a path that ends first never reads the numbers past its
 /// end), into the p* columns; the lanes' samplers move on. The independent sampler's in SIMD
-/// lanes from each lane's stream; the others' (WavefrontScene::predrawn) one lane at a time
-/// by Sampler, with its permutations and jitter.
+/// lanes from each lane's stream; the others' (WavefrontScene::predrawn) in SIMD lanes too,
+/// by SamplerColumns from the lanes' samplers gathered from `parts` (and put back).
 void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg, const SamplerDesc &desc,
-                Sampler::Parts *parts) {
+                Sampler::Parts *parts, SamplerColumns &columns) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const float nee = cfg.emitter_sampling ? 1.f : 0.f;
     const bool bsdf = cfg.bsdf_sampling;
@@ -920,21 +921,24 @@ void draw_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSetti
         }
         return;
     }
+    // Which lanes draw which numbers (the p* columns of the others are written, unread).
+    alignas(64) int emitter[B], roulette[B];
+    for (int k = 0; k < n; ++k) {
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        if (b.shade[k]) columns.set(k, parts[b.seq[k]]);
+        emitter[k] = b.shade[k] && (m.diffuse + m.rough) * nee != 0.f;
+        roulette[k] = b.shade[k] && b.depth[k] + 1 >= rr_depth;
+    }
+    columns.next_2d(desc, n, emitter, b.pe0, b.pe1);
+    if (bsdf) {
+        columns.next_1d(desc, n, b.shade, b.pb1);
+        columns.next_2d(desc, n, b.shade, b.pb2x, b.pb2y);
+    }
+    columns.next_1d(desc, n, roulette, b.prr);
     for (int k = 0; k < n; ++k) {
         if (!b.shade[k]) continue;
-        const WavefrontScene::Material &m = mats[b.mat[k]];
-        Sampler sampler = load_sampler(b, k, desc, parts);
-        if ((m.diffuse + m.rough) * nee != 0.f) {
-            const Vec2 u = sampler.next_2d();
-            b.pe0[k] = u.x, b.pe1[k] = u.y;
-        }
-        if (bsdf) {
-            b.pb1[k] = sampler.next_1d();
-            const Vec2 u2 = sampler.next_2d();
-            b.pb2x[k] = u2.x, b.pb2y[k] = u2.y;
-        }
-        if (b.depth[k] + 1 >= rr_depth) b.prr[k] = sampler.next_1d();
-        store_sampler(b, k, sampler, parts);
+        parts[b.seq[k]] = columns.get(k);
+        b.state[k] = columns.state[k], b.inc[k] = columns.inc[k];
     }
 }
 
@@ -1339,27 +1343,52 @@ void store_path(Batch &b, int k, const PathState<RGB<float>> &path, const Ray &r
 }
 
 /// The perspective sensor's rays of samples [0, n) into lanes [first, first + n) of the batch,
-/// and their film positions: what Sampler, Camera::sample_position and Camera::sample_ray
-/// compute, in SIMD lanes.
-void camera_stage(Batch &b, int first, const WavefrontSample *samples, int n, const Camera &camera,
-                  Vec2 *pos) {
+/// and their film positions: what Camera::sample_position and Camera::sample_ray compute, in
+/// SIMD lanes, from the numbers (ux, uy) each sample's sampler drew for its position and the
+/// stream it goes on with (state, inc).
+void camera_stage(Batch &b, int first, const WavefrontSample *samples, int n, const Camera &camera, Vec2 *pos,
+                  const float *ux, const float *uy, const uint64_t *state, const uint64_t *inc) {
     const Camera cam = camera;  // a local: the loop's stores cannot alias it
 #pragma GCC ivdep
     for (int i = 0; i < n; ++i) {
         const ptrdiff_t k = ptrdiff_t(first) + i;  // (an int sum, which may wrap, is not affine to GCC)
-        uint64_t state, inc;
-        pcg32_seed(samples[i].seed.stream, uint64_t(samples[i].s), &state, &inc);
-        float ux = uniform_float(pcg32_next(state, inc));
-        float uy = uniform_float(pcg32_next(state, inc));
-        Vec2 p{float(samples[i].px) + ux, float(samples[i].py) + uy};
+        Vec2 p{float(samples[i].px) + ux[i], float(samples[i].py) + uy[i]};
         pos[i].x = p.x, pos[i].y = p.y;
         Ray ray = cam.perspective_ray(p);
         b.ox[k] = ray.o.x, b.oy[k] = ray.o.y, b.oz[k] = ray.o.z;
         b.dx[k] = ray.d.x, b.dy[k] = ray.d.y, b.dz[k] = ray.d.z;
         b.tmin[k] = ray.tmin, b.tmax[k] = ray.tmax;
-        b.state[k] = state;
-        b.inc[k] = inc;
+        b.state[k] = state[i];
+        b.inc[k] = inc[i];
     }
+}
+
+/// The independent sampler's streams of samples [0, n) and the two numbers each draws first,
+/// the position in its pixel (Sampler's stream set-up and two uniforms), in SIMD lanes.
+void first_draws(const WavefrontSample *samples, int n, float *ux, float *uy, uint64_t *state, uint64_t *inc) {
+#pragma GCC ivdep
+    for (int i = 0; i < n; ++i) {
+        uint64_t st, in;
+        pcg32_seed(samples[i].seed.stream, uint64_t(samples[i].s), &st, &in);
+        ux[i] = uniform_float(pcg32_next(st, in));
+        uy[i] = uniform_float(pcg32_next(st, in));
+        state[i] = st, inc[i] = in;
+    }
+}
+
+/// The same for the other samplers (WavefrontScene::predrawn), by SamplerColumns, their
+/// samplers into parts[0, n).
+void first_draws(const WavefrontSample *samples, int n, const SamplerDesc &desc, SamplerColumns &columns,
+                 Sampler::Parts *parts, float *ux, float *uy) {
+    alignas(64) uint64_t keys[B];
+    for (int i = 0; i < n; ++i) {
+        keys[i] = samples[i].seed.stream;
+        columns.seq[i] = samples[i].seed.sequence;
+        columns.index[i] = uint32_t(samples[i].s);
+    }
+    columns.begin(desc, n, keys);
+    columns.next_2d(desc, n, nullptr, ux, uy);
+    for (int i = 0; i < n; ++i) parts[i] = columns.get(i);
 }
 
 /// An interaction's columns of lane k: the point, its error bound and the geometric normal,
@@ -1886,6 +1915,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         /// The samplers other than `independent` of samples [0, n_samples), beyond their
         /// streams (see load_sampler()).
         std::vector<Sampler::Parts> parts;
+        SamplerColumns columns;  ///< the batch's samplers of those kinds, in columns (draw_stage)
         /// `direct`'s sub-paths (IntegratorSettings::sub_paths), per sample: its camera ray
         /// and its closest hit, the sub-paths it has finished, and its stream where the last
         /// one ended; and the samples whose next sub-path waits for a drained batch, from
@@ -1953,12 +1983,21 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         b.depth[k] = 0;
     };
     // Start the paths of samples [next, next + m) in lanes [first, first + m): their camera
-    // rays (the perspective sensor's in SIMD lanes: Sampler's stream set-up and its two
-    // uniforms, Camera::perspective_ray; the others one sample at a time), at depth 0.
+    // rays (the perspective sensor's in SIMD lanes: the samplers' set-up and first two
+    // numbers, Camera::perspective_ray; the others one sample at a time), at depth 0.
     int next = 0;
     auto start = [&](int first, int m) {
-        if (camera.type == CameraType::Perspective && !ws.predrawn) {
-            camera_stage(b, first, samples + next, m, camera, pos + next);
+        if (camera.type == CameraType::Perspective) {
+            alignas(64) float ux[B], uy[B];
+            alignas(64) uint64_t state[B], inc[B];
+            const uint64_t *streams = state, *increments = inc;
+            if (ws.predrawn) {
+                first_draws(samples + next, m, camera.sampler, buffers.columns, parts + next, ux, uy);
+                streams = buffers.columns.state, increments = buffers.columns.inc;
+            } else {
+                first_draws(samples + next, m, ux, uy, state, inc);
+            }
+            camera_stage(b, first, samples + next, m, camera, pos + next, ux, uy, streams, increments);
         } else {
             for (int i = 0; i < m; ++i) {
                 const int k = first + i;
@@ -2223,7 +2262,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // Shade the other vertices in lanes (the rough ones' BSDF samples first, Beckmann's
         // visible normals before those; their emitter samples after); then the vertices
         // shaded aside return.
-        draw_stage(b, n, ws, cfg, camera.sampler, parts);
+        draw_stage(b, n, ws, cfg, camera.sampler, parts, buffers.columns);
         // Paths of two vertices (no refill: every lane's next vertex is its last, where only
         // the rays that enter an emitter's box are traced), without roulette or recording,
         // evaluate their rough BSDF samples only where those rays enter one

@@ -25,9 +25,10 @@ def camera(sampler: str, jitter: bool = True) -> dict:
     return s.native()
 
 
-def points(sampler, spp, seed=3, pixel=5, dims=(2, 1, 2, 2, 1, 2), jitter=True) -> np.ndarray:
-    """(sample_count, sum(dims)): each sample's draws, next_2d for a 2 and next_1d for a 1."""
-    return tr._C.sampler_points(camera(sampler, jitter), spp, seed, pixel, list(dims)).numpy()
+def points(sampler, spp, seed=3, pixel=5, dims=(2, 1, 2, 2, 1, 2), jitter=True, lanes=False) -> np.ndarray:
+    """(sample_count, sum(|dims|)): each sample's draws, next_2d for a 2 and next_1d for a 1
+    (-2 and -1: drawn by the even samples alone); with `lanes`, drawn by SamplerColumns."""
+    return tr._C.sampler_points(camera(sampler, jitter), spp, seed, pixel, list(dims), lanes).numpy()
 
 
 def strata(x: np.ndarray, n: int) -> np.ndarray:
@@ -259,3 +260,32 @@ def test12_l2_loss_gradient_is_unbiased_with_a_stratified_sampler():
           f"replay {replay.mean():.4f} +- {se_r:.4f}")
     assert abs(float(independent.mean()) - expected) < 4 * se_i
     assert float(replay.mean()) - expected > 4 * se_r
+
+
+# -- 5. the draws in SIMD lanes -----------------------------------------------------------------
+
+# Sample counts each sampler keeps or rounds to: powers of two and not (where the permutations
+# walk their cycles past n), more than SamplerColumns' 256 lanes, and one of about 3 million
+# (its divisions' quotients estimated in double).
+LANE_COUNTS = {"stratified": [1, 4, 9, 25, 64, 300, 3_000_000], "multijitter": [2, 3, 6, 20, 64, 300, 3_000_000],
+               "orthogonal": [4, 9, 49, 121, 300], "ldsampler": [4, 16, 64, 1024]}
+
+
+@pytest.mark.parametrize("jitter", [True, False])
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test13_lanes_draw_each_samples_own_numbers(sampler, jitter):
+    """SamplerColumns, which the wavefront draws its numbers with (a vertex's, a camera
+    ray's), gives every sample the numbers its own Sampler gives it, bit for bit: in every
+    dimension, with and without jitter, where only some samples draw (the others do not move
+    on), for several pixels and seeds."""
+    if sampler == "ldsampler" and not jitter:
+        pytest.skip("the ldsampler has no jitter parameter")
+    for spp in LANE_COUNTS[sampler]:
+        big = spp > 10_000
+        for seed, pixel in [(3, 5)] if big else [(3, 5), (0, 0), (917, 63)]:
+            for dims in [(2, 1)] if big else [(2, 1, 2, 2, 1, 2, 1, 1), (2, -1, -2, 1, -2, 2, 1)]:
+                one, lanes = (points(sampler, spp, seed, pixel, dims, jitter, lanes) for lanes in (False, True))
+                assert one.shape[0] >= spp
+                assert np.array_equal(one, lanes), (sampler, spp, seed, pixel, dims)
+                if min(dims) > 0 and not big:  # (a stratified dimension, not a constant)
+                    assert len(np.unique(one[:, -1])) == one.shape[0]

@@ -352,9 +352,11 @@ def test08_vector_stages_vectorise(tmp_path, march):
     # template instances, for AVX2 and for this machine. An edit that stops GCC (a helper it
     # no longer inlines, a load under a condition) keeps the images bitwise equal and only
     # makes them slower, which no other test sees. So do the film's batched filter weights
-    # (camera.cpp: the tent's and the gaussian's).
+    # (camera.cpp: the tent's and the gaussian's), and the stratified samplers' draws in
+    # lanes (sampler.cpp).
     assert assert_marked_loops_vectorise("wavefront.cpp", "#pragma GCC ivdep", march, tmp_path) >= 3
     assert assert_marked_loops_vectorise("camera.cpp", "#pragma GCC ivdep", march, tmp_path) == 2
+    assert assert_marked_loops_vectorise("sampler.cpp", "#pragma GCC ivdep", march, tmp_path) == 20
 
 
 def test11_backward_in_lanes_for_specular_inputs(tmp_path, monkeypatch):
