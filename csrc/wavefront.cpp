@@ -184,7 +184,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
     auto unit_triangle = [&ws]() {
         for (int i = 0; i < 9; ++i) ws.cdf.push_back(i == 0 ? 0.f : i == 1 ? 1.f : 2.f);
         const Vec3 p[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, n[3];
-        for (int t = 0; t < 8; ++t) ws.add_light_triangle(p, n, Vec3{0.f, 0.f, 1.f});
+        for (int t = 0; t < 8; ++t) ws.triangles.add(p, n, Vec3{0.f, 0.f, 1.f});
     };
     for (const Emitter &e : scene.emitters) {
         WavefrontScene::Light light;
@@ -201,6 +201,17 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         if (!in_lanes(e)) {
             ws.any_aside_lights = true;
             light.aside = 1.f;
+            const Shape *mesh = e.type == EmitterType::Area ? &scene.geometry.shapes[e.shape] : nullptr;
+            if (mesh && mesh->kind == ShapeKind::Mesh && mesh->tri_count > 8) {
+                ws.any_large_lights = true;
+                light.large = 1;
+                light.area = mesh->area;
+                light.has_normals = mesh->has_normals;
+                light.flip_normals = mesh->flip_normals;
+                ws.any_large_normals = ws.any_large_normals || mesh->has_normals;
+            } else {
+                ws.any_small_aside_lights = true;
+            }
             ws.lights.push_back(light);
             unit_triangle();
             continue;
@@ -229,10 +240,43 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 p[j] = g.positions[tri.v[j]];
                 n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
             }
-            ws.add_light_triangle(p, n, tri.n);
+            ws.triangles.add(p, n, tri.n);
         }
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
+    }
+    // The large mesh lights' triangles and CDFs (mesh_light_stage), after a unit triangle and
+    // its CDF, which the other lights' entries point at.
+    if (ws.any_large_lights) {
+        const Geometry &g = scene.geometry;
+        const Vec3 unit[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, none[3];
+        ws.large_cdf = {0.f, 1.f};
+        ws.large_triangles.add(unit, none, Vec3{0.f, 0.f, 1.f});
+        uint32_t most = 1;
+        for (size_t i = 0; i < ws.lights.size(); ++i) {
+            int count = 1, cdf_first = 0, first = 0;
+            if (ws.lights[i].large) {
+                const Shape &shape = g.shapes[scene.emitters[i].shape];
+                count = int(shape.tri_count);
+                cdf_first = int(ws.large_cdf.size());
+                first = int(ws.large_triangles.face_normal[0].size());
+                ws.large_cdf.insert(ws.large_cdf.end(), shape.tri_cdf.begin(), shape.tri_cdf.end());
+                for (uint32_t t = 0; t < shape.tri_count; ++t) {
+                    const Triangle &tri = g.triangles[shape.tri_begin + t];
+                    Vec3 p[3], n[3];
+                    for (int j = 0; j < 3; ++j) {
+                        p[j] = g.positions[tri.v[j]];
+                        n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
+                    }
+                    ws.large_triangles.add(p, n, tri.n);
+                }
+                most = std::max(most, shape.tri_count);
+            }
+            ws.large_count.push_back(count);
+            ws.large_cdf_first.push_back(cdf_first);
+            ws.large_first.push_back(first);
+        }
+        while ((1u << ws.large_steps) < most) ++ws.large_steps;
     }
     // The emitting shapes' boxes, for the rays at their last vertex (trace_wavefront), unless
     // an escaped ray finds the environment or there are so many that testing their boxes
@@ -536,13 +580,13 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const Microf
     return e;
 }
 
-/// The lights' triangles (WavefrontScene::tri_vertex, tri_normal, tri_face_normal) read as
-/// Vec3s: triangle t's vertex j, its vertex normal, its face normal.
+/// Lights' triangles (WavefrontScene::TriangleColumns) read as Vec3s: triangle t's vertex j,
+/// its vertex normal, its face normal.
 struct LightTriangles {
     const float *p[9], *n[9], *face[3];
-    explicit LightTriangles(const WavefrontScene &ws) {
-        for (int i = 0; i < 9; ++i) p[i] = ws.tri_vertex[i].data(), n[i] = ws.tri_normal[i].data();
-        for (int a = 0; a < 3; ++a) face[a] = ws.tri_face_normal[a].data();
+    explicit LightTriangles(const WavefrontScene::TriangleColumns &c) {
+        for (int i = 0; i < 9; ++i) p[i] = c.vertex[i].data(), n[i] = c.normal[i].data();
+        for (int a = 0; a < 3; ++a) face[a] = c.face_normal[a].data();
     }
     RBPT_INLINE Vec3 vertex(int j, int t) const { return {p[3 * j][t], p[3 * j + 1][t], p[3 * j + 2][t]}; }
     RBPT_INLINE Vec3 normal(int j, int t) const { return {n[3 * j][t], n[3 * j + 1][t], n[3 * j + 2][t]}; }
@@ -562,7 +606,7 @@ struct LightTriangles {
 template <int Tris>
 __attribute__((noinline)) void light_point_stage(Batch &b, int n, const WavefrontScene &ws) {
     const float *cdf = ws.cdf.data();  // (the first light's entries)
-    const LightTriangles tris(ws);
+    const LightTriangles tris(ws.triangles);
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
@@ -615,7 +659,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     // would become a masked load of one address, which GCC does not vectorise.)
     const WavefrontScene::Light first = ws.lights[0];
     const float *cdfs = ws.cdf.data();
-    const LightTriangles tris(ws);
+    const LightTriangles tris(ws.triangles);
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
     // Conditions are carried as float flags (1 or 0) narrowed by selects: GCC 12 cannot
     // vectorise the boolean selects it makes of && chains and of booleans combined with
@@ -970,6 +1014,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         const Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
         const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
         std::optional<EmitterSample<RGB<float>>> es;
+        if (ws.lights[size_t(index)].large) continue;  // (mesh_light_stage's)
         if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
             es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
         const EmitterSample<RGB<float>> none;
@@ -981,6 +1026,101 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         b.awr[k] = es ? e.weight[0] : 0.f, b.awg[k] = es ? e.weight[1] : 0.f, b.awb[k] = es ? e.weight[2] : 0.f;
         b.adelta[k] = e.delta ? 1.f : 0.f;
         b.ainf[k] = std::isinf(e.dist) ? 1.f : 0.f;
+    }
+}
+
+/// The emitter samples of the lanes whose emitter is a mesh light of more than 8 triangles
+/// (Light::large), in SIMD lanes, into the a* columns as aside_emitter_stage's (which runs
+/// after it and leaves those lanes alone): emitter_sample()'s area branch and Geometry::sample_direction's mesh
+/// branch, the same operations. The light's triangle is found by a binary search of its CDF
+/// without branches (std::upper_bound's count, large_steps halvings for every lane), its
+/// vertices and normals gathered (WavefrontScene::large_triangles; the vertex normals only
+/// where some of those lights have them: Normals).
+template <bool Normals>
+void mesh_light_stage(Batch &b, int n, const WavefrontScene &ws) {
+    const WavefrontScene::Material *mats = ws.materials.data();
+    const WavefrontScene::Light *lights = ws.lights.data();
+    const int n_lights = int(ws.lights.size());
+    const int *counts = ws.large_count.data(), *cdf_firsts = ws.large_cdf_first.data();
+    const int *firsts = ws.large_first.data();
+    // (The radiance from WavefrontScene::radiance: a gather of Light::radiance's array member
+    // stopped the vectoriser.)
+    const float *cdf = ws.large_cdf.data(), *radiance = ws.radiance.data();
+    const LightTriangles tris(ws.large_triangles);
+    // The light each lane selects (emitter_sample's choice) and u.x within it; the search's
+    // start in the CDF's entries [1, count] and the length left.
+    alignas(64) int chosen[B], base[B], left[B];
+    alignas(64) float ux[B];
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const float u = b.pe0[k];  // (draw_stage's)
+        const int index = std::min(int(u * float(n_lights)), n_lights - 1);
+        chosen[k] = index;
+        ux[k] = std::min(u * float(n_lights) - float(index), 0.99999994f);
+        base[k] = cdf_firsts[index] + 1;
+        left[k] = counts[index];
+    }
+    for (int step = 0; step < ws.large_steps; ++step) {
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            const int half = left[k] / 2;
+            base[k] = cdf[base[k] + half] <= ux[k] ? base[k] + half : base[k];
+            left[k] -= half;
+        }
+    }
+#pragma GCC ivdep
+    for (int k = 0; k < n; ++k) {
+        const int index = chosen[k], c = cdf_firsts[index];
+        const WavefrontScene::Light &l = lights[index];
+        // The triangle: the CDF's entries at most u.x (upper_bound), but the last.
+        const int le = base[k] - (c + 1) + (cdf[base[k]] <= ux[k] ? 1 : 0);
+        const int local = std::min(le, counts[index] - 1);
+        const float lo = cdf[c + local], width = cdf[c + local + 1] - lo;
+        Vec2 u{std::min(width > 0.f ? (ux[k] - lo) / width : 0.f, 0.99999994f), b.pe1[k]};
+        // A uniform point on it, its normal (interpolated, or the face's) and the face normal.
+        const int t = firsts[index] + local;
+        const Vec2 bc = warp::square_to_uniform_triangle(u);
+        const float b0 = 1.f - bc.x - bc.y;
+        const Vec3 lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
+        const Vec3 face_n = tris.face_normal(t);
+        Vec3 ln = face_n;
+        if constexpr (Normals) {
+            const Vec3 vn = normalize(tris.normal(0, t) * b0 + tris.normal(1, t) * bc.x + tris.normal(2, t) * bc.y);
+            ln = select(l.has_normals, vn, face_n);
+        }
+        ln = select(l.flip_normals, -ln, ln);
+        // The direction and its density (by area, converted to solid angle with the face
+        // normal), and whether it is a sample: pdf > 0 and d facing the light's front.
+        const Vec3 p{b.px[k], b.py[k], b.pz[k]};
+        Vec3 d = lp - p;
+        const float dist2 = squared_norm(d), dist = std::sqrt(dist2);
+        d = d * (1.f / dist);
+        const float abs_cos = std::abs(dot(face_n, d));
+        float pdf = abs_cos > 0.f ? dist2 / (l.area * abs_cos) : 0.f;
+        pdf = dist != 0.f ? pdf : 0.f;
+        const WavefrontScene::Material &m = mats[b.mat[k]];
+        float ok = b.shade[k] != 0 ? 1.f : 0.f;
+        ok = m.diffuse + m.rough != 0.f ? ok : 0.f;
+        ok = pdf > 0.f ? ok : 0.f;
+        ok = dot(d, ln) < 0.f ? ok : 0.f;
+        const float es_pdf = pdf / float(n_lights), inv_pdf = 1.f / es_pdf;
+        // Into the a* columns (no sample: EmitterSample's defaults), of every lane: the
+        // other lights' lanes take aside_emitter_stage's after, or none (unconditional
+        // stores: selects with the columns' old values became masked stores, which GCC does
+        // not vectorise for AVX2 here).
+        const bool sample = ok != 0.f;
+        b.aok[k] = ok;
+        b.adx[k] = sample ? d.x : 0.f, b.ady[k] = sample ? d.y : 0.f, b.adz[k] = sample ? d.z : 0.f;
+        b.apx[k] = sample ? lp.x : 0.f, b.apy[k] = sample ? lp.y : 0.f, b.apz[k] = sample ? lp.z : 0.f;
+        b.apdf[k] = sample ? es_pdf : 0.f;
+        // (The radiance read in every lane, its factor selected: a load under the condition
+        // became a masked gather, which GCC does not vectorise for AVX2.)
+        const float scale = sample ? inv_pdf : 0.f;
+        b.awr[k] = radiance[3 * index] * scale;
+        b.awg[k] = radiance[3 * index + 1] * scale;
+        b.awb[k] = radiance[3 * index + 2] * scale;
+        b.adelta[k] = 0.f;
+        b.ainf[k] = sample ? 0.f : 1.f;
     }
 }
 
@@ -2273,8 +2413,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (ggx.count > 0) (defer ? ggx_sample_stage<true> : ggx_sample_stage<false>)(b, ggx, ws);
         beckmann.count = ws.any_beckmann ? list_rough_lanes(b, n, ws, 1.f, beckmann.lanes) : 0;
         if (beckmann.count > 0) (defer ? beckmann_sample_stage<true> : beckmann_sample_stage<false>)(b, ws, beckmann);
-        // (Without emitter sampling the vector stage reads no aside sample.)
-        if (ws.any_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
+        // (Without emitter sampling the vector stage reads no aside sample; the mesh lights'
+        // stage writes every lane's, the other stage then those of its lights.)
+        if (ws.any_large_lights && cfg.emitter_sampling)
+            (ws.any_large_normals ? mesh_light_stage<true> : mesh_light_stage<false>)(b, n, ws);
+        if (ws.any_small_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
         if (ggx.count > 0) rough_emitter_stage<Microfacet::GGX>(b, ggx, ws, bsdf_mis);

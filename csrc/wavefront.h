@@ -84,8 +84,10 @@ struct WavefrontScene {
         /// 1: an emitter the vector stage does not sample itself (a point light, an area light
         /// on a disk, a cylinder or a mesh of more than 8 triangles; any new emitter type):
         /// emitter_sample() samples it, one lane at a time, before the vector stage, which
-        /// then takes that sample (no mesh in the flat arrays), else 0.
+        /// then takes that sample (no mesh in the flat arrays), else 0. A mesh's (`large`)
+        /// are sampled by mesh_light_stage instead, in SIMD lanes.
         float aside = 0.f;
+        int large = 0;  ///< 1: an area light on a mesh of more than 8 triangles (large_*)
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     /// A material whose input a is a bilinear bitmap (and t a constant, or none): the shade
@@ -145,25 +147,41 @@ struct WavefrontScene {
     bool any_sphere_lights = false;   ///< whether some are spheres
     bool any_mesh_lights = false;     ///< whether some are meshes
     bool any_aside_lights = false;    ///< whether some are sampled aside (Light::aside)
+    bool any_large_lights = false;    ///< whether some of those are meshes (Light::large)
+    bool any_large_normals = false;   ///< whether some of those meshes have vertex normals
+    bool any_small_aside_lights = false;  ///< whether others are (aside_emitter_stage's)
     /// Whether the sampler is not `independent`: then draw_stage draws each vertex's numbers
-    /// one lane at a time by Sampler (its permutations and jitter), where it draws the
-    /// independent sampler's in lanes; the other stages read them from columns either way.
+    /// with SamplerColumns (its permutations and jitter, in lanes too), where it draws the
+    /// independent sampler's from each lane's stream; the other stages read them from
+    /// columns either way.
     bool predrawn = false;
+    /// Triangles as columns, one per vertex and axis (gathers of a Vec3's members GCC makes
+    /// lane by lane): vertex j's axis a of triangle t at vertex[3 j + a][t], likewise its
+    /// vertex normal (zero without them) in normal; Triangle::n in face_normal[a].
+    struct TriangleColumns {
+        std::vector<float> vertex[9], normal[9], face_normal[3];
+        /// Append a triangle: its vertices p, vertex normals n and face normal.
+        void add(const Vec3 p[3], const Vec3 n[3], const Vec3 &face) {
+            for (int j = 0; j < 3; ++j) {
+                for (int a = 0; a < 3; ++a) vertex[3 * j + a].push_back(p[j][a]), normal[3 * j + a].push_back(n[j][a]);
+            }
+            for (int a = 0; a < 3; ++a) face_normal[a].push_back(face[a]);
+        }
+    };
     // Each light's mesh (at most 8 triangles) in flat arrays, which the vector loop gathers
     // from with one base address each: light e's triangle t is entry 8 e + t. (The
     // environment's and the spheres' entries are a unit triangle, gathered and ignored.)
     std::vector<float> cdf;  ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)
-    /// The triangles as columns, one per vertex and axis (gathers of a Vec3's members GCC
-    /// makes lane by lane): vertex j's axis a of triangle t at tri_vertex[3 j + a][t], likewise
-    /// its vertex normal (zero without them) in tri_normal; Triangle::n in tri_face_normal[a].
-    std::vector<float> tri_vertex[9], tri_normal[9], tri_face_normal[3];
-    /// Append a triangle: its vertices p, vertex normals n and face normal.
-    void add_light_triangle(const Vec3 p[3], const Vec3 n[3], const Vec3 &face) {
-        for (int j = 0; j < 3; ++j) {
-            for (int a = 0; a < 3; ++a) tri_vertex[3 * j + a].push_back(p[j][a]), tri_normal[3 * j + a].push_back(n[j][a]);
-        }
-        for (int a = 0; a < 3; ++a) tri_face_normal[a].push_back(face[a]);
-    }
+    TriangleColumns triangles;
+    /// The meshes of the lights of more than 8 triangles (Light::large), which
+    /// mesh_light_stage searches in lanes: per light its triangle count, its Shape::tri_cdf's
+    /// first entry in large_cdf and its first triangle in large_triangles; the other lights'
+    /// entries point at a unit triangle, entry 0, whose CDF is large_cdf[0, 2). large_steps:
+    /// the binary search's steps for the most triangles.
+    std::vector<int> large_count, large_cdf_first, large_first;
+    std::vector<float> large_cdf;
+    TriangleColumns large_triangles;
+    int large_steps = 0;
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else

@@ -1,6 +1,7 @@
 """The wavefront (csrc/wavefront.h): float renders of the path integrator whose vertices are
 shaded in SIMD lanes give the scalar integrator's images bit for bit, and scenes outside its
 subset are left to the scalar integrator."""
+import math
 import shutil
 
 import numpy as np
@@ -990,3 +991,62 @@ def test32_rays_that_escape_end_in_lanes(tmp_path, monkeypatch, integrator):
     assert not torch.equal(seen, scalar)
     background = (scalar if integrator.get("hide_emitters") else seen).sum(-1) == 0
     assert int(background.sum()) > 20
+
+
+def dome_obj(rings: int, segments: int) -> str:
+    """A half sphere of radius 0.25 around (0, 1.3, 0), open at the bottom, with vertex
+    normals pointing out: 2 (rings - 1) segments + segments triangles of unequal areas."""
+    lines, center = [], (0.0, 1.3, 0.0)
+    for i in range(rings + 1):
+        theta = 0.5 * math.pi * i / rings
+        for j in range(segments):
+            phi = 2 * math.pi * j / segments
+            n = (math.sin(theta) * math.cos(phi), math.cos(theta), math.sin(theta) * math.sin(phi))
+            lines.append("v %f %f %f" % tuple(c + 0.25 * a for c, a in zip(center, n)))
+            lines.append("vn %f %f %f" % n)
+    for i in range(rings):
+        for j in range(segments):
+            a, b = i * segments + j + 1, i * segments + (j + 1) % segments + 1
+            c, d = a + segments, b + segments
+            lines.append(f"f {a}//{a} {c}//{c} {d}//{d}")
+            if i > 0:
+                lines.append(f"f {a}//{a} {d}//{d} {b}//{b}")
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("lights", ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified"])
+def test33_mesh_lights_of_many_triangles_sampled_in_lanes(tmp_path, monkeypatch, lights):
+    # Area lights on meshes of more than 8 triangles are sampled in SIMD lanes
+    # (mesh_light_stage: each lane's triangle found by a binary search of its light's CDF,
+    # its vertices gathered) rather than by emitter_sample() one lane at a time: a dome of
+    # 84 triangles of unequal areas with vertex normals, a strip of 40 seen from its back
+    # (flip_normals), beside small mesh lights and a point light (aside_emitter_stage's),
+    # with the stratified sampler. The image is path_li's bit for bit, and the lights'
+    # radiances are differentiated in lanes with the tape's gradients.
+    (tmp_path / "dome.obj").write_text(dome_obj(4, 12))
+    (tmp_path / "long.obj").write_text("".join(f"v {-1.0 + 0.1 * i} 0.25 {0.7 + 0.02 * (i % 3)}\nv {-1.0 + 0.1 * i} 0.25 0.9\n"
+                                               for i in range(21)) +
+                                       "".join(f"f {2 * i + 1} {2 * i + 3} {2 * i + 4}\nf {2 * i + 1} {2 * i + 4} {2 * i + 2}\n"
+                                               for i in range(20)))
+    d = room_dict(tmp_path, {"max_depth": 5, "rr_depth": 2})
+    keys = []
+    if lights.startswith("dome"):
+        d["dome"] = {"type": "obj", "filename": str(tmp_path / "dome.obj"),
+                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [12.0, 9.0, 6.0]}}}
+        keys.append("dome.emitter.radiance.value")
+    if "strip of 40" in lights:
+        d["long"] = {"type": "obj", "filename": str(tmp_path / "long.obj"), "flip_normals": True,
+                     "emitter": {"type": "area", "radiance": 3.0}}
+        keys.append("long.emitter.radiance.value")
+    if lights == "dome alone":
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+    if "point light" in lights:
+        d["lamp"] = LAMP
+    if "stratified" in lights:
+        d["sensor"]["sampler"] = {"type": "stratified"}
+    scene = tr.load_dict(d)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=5)
+    assert torch.equal(wavefront, scalar)
+    assert float(scalar.mean()) > 0.05
+    assert_lanes_give_the_tapes_gradients(scene, keys + ["floor.bsdf.reflectance.value"], monkeypatch, spp=9)
