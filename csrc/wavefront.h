@@ -19,15 +19,16 @@
 // vector stage shades diffuse BSDFs (`twosided` or not), the roughconductor and roughplastic
 // (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
 // vector stage, from the same random numbers), with their emitter samples on area emitters
-// on spheres and on meshes of at most 8 triangles and on the `constant` environment (other
-// emitters' samples are taken by emitter_sample() one path at a time, just before the vector
-// stage, which then takes them), and the smooth conductor and dielectric; their
+// on spheres and on meshes of at most 8 triangles and on the `constant` environment (larger
+// meshes' samples are taken in SIMD lanes just before the vector stage, mesh_light_stage,
+// and other emitters' by emitter_sample() one path at a time; the vector stage then takes
+// them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with n samples of each
 // kind or of one kind alone, as path_settings() makes it: n paths of two vertices, one after
 // the other from the camera ray's first hit), with any sampler (each vertex's
-// numbers are drawn in one stage before the others, by Sampler one lane at a time for the
+// numbers are drawn in one stage before the others, by SamplerColumns in lanes for the
 // samplers other than `independent`: WavefrontScene::predrawn),
 // when some BSDF of the scene is one of those; other scenes, and the autodiff number types, take
 // path_li. render_bwd also traces its paths with
