@@ -81,13 +81,11 @@ void next_seeds(SamplerColumns &c, int n, const int *draw, uint32_t factor, uint
     }
 }
 
-/// Sampler::stratified_1d of `stratified` and `multijitter` (a permuted stratum, jittered),
-/// from the seeds next_seeds() gave.
+/// u[k] = (stratum[k] + jitter) / count (the 1D draws' last step), each lane's jitter from
+/// its stream, which moves on where draw[k].
 template <bool Jitter>
-void permuted_1d(SamplerColumns &c, const SamplerDesc &d, int n, const int *draw, const uint32_t *seed, float *u) {
-    alignas(64) uint32_t stratum[Capacity];
-    permute_kensler_lanes(c.index, d.sample_count, seed, stratum, n);
-    const float inv = 1.f / float(d.sample_count);
+void jittered_1d(SamplerColumns &c, int n, const int *draw, const uint32_t *stratum, uint32_t count, float *u) {
+    const float inv = 1.f / float(count);
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
         uint64_t state = c.state[k];
@@ -95,6 +93,15 @@ void permuted_1d(SamplerColumns &c, const SamplerDesc &d, int n, const int *draw
         c.state[k] = draw[k] ? state : c.state[k];
         u[k] = scaled_below_one(float(stratum[k]) + j, inv);
     }
+}
+
+/// Sampler::stratified_1d of `stratified` and `multijitter` (a permuted stratum, jittered),
+/// from the seeds next_seeds() gave.
+template <bool Jitter>
+void permuted_1d(SamplerColumns &c, const SamplerDesc &d, int n, const int *draw, const uint32_t *seed, float *u) {
+    alignas(64) uint32_t stratum[Capacity];
+    permute_kensler_lanes(c.index, d.sample_count, seed, stratum, n);
+    jittered_1d<Jitter>(c, n, draw, stratum, d.sample_count, u);
 }
 
 /// Sampler::stratified_2d of `stratified`: a cell of the res x res grid, jittered.
@@ -172,14 +179,9 @@ void orthogonal_1d(SamplerColumns &c, const SamplerDesc &d, int n, const int *dr
     }
     permute_kensler_lanes(a_ij, p, s1, stratum, n);
     permute_kensler_lanes(a_ik, p, s2, sub, n);
-    const float inv = 1.f / float(d.sample_count);
 #pragma GCC ivdep
-    for (int k = 0; k < n; ++k) {
-        uint64_t state = c.state[k];
-        const float j = jitter<Jitter>(state, c.inc[k]);
-        c.state[k] = draw[k] ? state : c.state[k];
-        u[k] = scaled_below_one(float(stratum[k] * p + sub[k]) + j, inv);
-    }
+    for (int k = 0; k < n; ++k) stratum[k] = stratum[k] * p + sub[k];
+    jittered_1d<Jitter>(c, n, draw, stratum, d.sample_count, u);
 }
 
 /// The independent sampler's next_1d (Sampler::uniform), or two for next_2d.
