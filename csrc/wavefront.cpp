@@ -209,6 +209,11 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 light.has_normals = mesh->has_normals;
                 light.flip_normals = mesh->flip_normals;
                 ws.any_large_normals = ws.any_large_normals || mesh->has_normals;
+            } else if (mesh && mesh->kind == ShapeKind::Disk) {
+                ws.any_disk_lights = true;
+                light.disk = 1;
+                light.area = mesh->area;
+                light.flip_normals = mesh->flip_normals;
             } else {
                 ws.any_small_aside_lights = true;
             }
@@ -245,9 +250,18 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
-    // The large mesh lights' triangles and CDFs (mesh_light_stage), after a unit triangle and
-    // its CDF, which the other lights' entries point at.
-    if (ws.any_large_lights) {
+    // The disk lights' frames and normals (area_light_stage), zeros for the other lights.
+    for (int c = 0; c < 15; ++c) ws.disk_frame[c].assign(ws.lights.size(), 0.f);
+    for (size_t i = 0; ws.any_disk_lights && i < ws.lights.size(); ++i) {
+        if (!ws.lights[i].disk) continue;
+        const Shape &shape = scene.geometry.shapes[scene.emitters[i].shape];
+        const Vec3 frame[5] = {shape.center, shape.local_x, shape.local_y, shape.local_z, shape.normal};
+        for (int v = 0; v < 5; ++v)
+            for (int a = 0; a < 3; ++a) ws.disk_frame[3 * v + a][i] = frame[v][a];
+    }
+    // The large mesh lights' triangles and CDFs (area_light_stage), after a unit triangle and
+    // its CDF, which the other lights' entries point at (all lights' with disks alone).
+    if (ws.any_large_lights || ws.any_disk_lights) {
         const Geometry &g = scene.geometry;
         const Vec3 unit[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, none[3];
         ws.large_cdf = {0.f, 1.f};
@@ -1014,7 +1028,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         const Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
         const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
         std::optional<EmitterSample<RGB<float>>> es;
-        if (ws.lights[size_t(index)].large) continue;  // (mesh_light_stage's)
+        if (ws.lights[size_t(index)].large || ws.lights[size_t(index)].disk) continue;  // (area_light_stage's)
         if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
             es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
         const EmitterSample<RGB<float>> none;
@@ -1029,15 +1043,18 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
     }
 }
 
-/// The emitter samples of the lanes whose emitter is a mesh light of more than 8 triangles
-/// (Light::large), in SIMD lanes, into the a* columns as aside_emitter_stage's (which runs
-/// after it and leaves those lanes alone): emitter_sample()'s area branch and Geometry::sample_direction's mesh
-/// branch, the same operations. The light's triangle is found by a binary search of its CDF
+/// The emitter samples of the lanes whose emitter is an area light on a mesh of more than 8
+/// triangles (Light::large) or on a disk (Light::disk), in SIMD lanes, into the a* columns as
+/// aside_emitter_stage's (which runs after it and leaves those lanes alone):
+/// emitter_sample()'s area branch and Geometry::sample_direction's mesh and disk branches,
+/// the same operations. A mesh light's triangle is found by a binary search of its CDF
 /// without branches (std::upper_bound's count, large_steps halvings for every lane), its
 /// vertices and normals gathered (WavefrontScene::large_triangles; the vertex normals only
-/// where some of those lights have them: Normals).
-template <bool Normals>
-void mesh_light_stage(Batch &b, int n, const WavefrontScene &ws) {
+/// where some of those lights have them: Normals); a disk's point is the concentric map's,
+/// placed by its frame in double (Shape::world_point; WavefrontScene::disk_frame). The code
+/// of the kind a scene lacks is left out (Meshes, Disks).
+template <bool Meshes, bool Normals, bool Disks>
+void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
     const int n_lights = int(ws.lights.size());
@@ -1060,12 +1077,28 @@ void mesh_light_stage(Batch &b, int n, const WavefrontScene &ws) {
         base[k] = cdf_firsts[index] + 1;
         left[k] = counts[index];
     }
-    for (int step = 0; step < ws.large_steps; ++step) {
+    for (int step = 0; Meshes && step < ws.large_steps; ++step) {
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
             const int half = left[k] / 2;
             base[k] = cdf[base[k] + half] <= ux[k] ? base[k] + half : base[k];
             left[k] -= half;
+        }
+    }
+    // A disk light's point, uniform in area (in a loop of its own: with the double
+    // precision products in the loop below, GCC vectorised neither).
+    alignas(64) float dpx[B], dpy[B], dpz[B];
+    const float *f[15];  // (a column each: gathers of one base address)
+    for (int c = 0; c < 15; ++c) f[c] = ws.disk_frame[c].data();
+    if constexpr (Disks) {
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) {
+            const int i = chosen[k];
+            const Vec2 q = warp::square_to_uniform_disk_concentric(Vec2{ux[k], b.pe1[k]});
+            const double q0 = q.x, q1 = q.y, q2 = 0.0;
+            dpx[k] = float(double(f[0][i]) + double(f[3][i]) * q0 + double(f[6][i]) * q1 + double(f[9][i]) * q2);
+            dpy[k] = float(double(f[1][i]) + double(f[4][i]) * q0 + double(f[7][i]) * q1 + double(f[10][i]) * q2);
+            dpz[k] = float(double(f[2][i]) + double(f[5][i]) * q0 + double(f[8][i]) * q1 + double(f[11][i]) * q2);
         }
     }
 #pragma GCC ivdep
@@ -1081,14 +1114,23 @@ void mesh_light_stage(Batch &b, int n, const WavefrontScene &ws) {
         const int t = firsts[index] + local;
         const Vec2 bc = warp::square_to_uniform_triangle(u);
         const float b0 = 1.f - bc.x - bc.y;
-        const Vec3 lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
-        const Vec3 face_n = tris.face_normal(t);
+        Vec3 lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
+        Vec3 face_n = tris.face_normal(t);
         Vec3 ln = face_n;
         if constexpr (Normals) {
             const Vec3 vn = normalize(tris.normal(0, t) * b0 + tris.normal(1, t) * bc.x + tris.normal(2, t) * bc.y);
             ln = select(l.has_normals, vn, face_n);
         }
         ln = select(l.flip_normals, -ln, ln);
+        if constexpr (Disks) {
+            // A disk's point (the loop above's) and its normal (the area's too).
+            Vec3 dn{f[12][index], f[13][index], f[14][index]};
+            dn = select(l.flip_normals, -dn, dn);
+            const bool disk = l.disk != 0;
+            lp = select(disk, Vec3{dpx[k], dpy[k], dpz[k]}, lp);
+            face_n = select(disk, dn, face_n);
+            ln = select(disk, dn, ln);
+        }
         // The direction and its density (by area, converted to solid angle with the face
         // normal), and whether it is a sample: pdf > 0 and d facing the light's front.
         const Vec3 p{b.px[k], b.py[k], b.pz[k]};
@@ -1122,6 +1164,14 @@ void mesh_light_stage(Batch &b, int n, const WavefrontScene &ws) {
         b.adelta[k] = 0.f;
         b.ainf[k] = sample ? 0.f : 1.f;
     }
+}
+
+/// The instance of area_light_stage for a scene's lights.
+using AreaLightStage = void (*)(Batch &, int, const WavefrontScene &);
+AreaLightStage area_light_stage_for(const WavefrontScene &ws) {
+    return with_flags([](auto meshes, auto normals, auto disks) -> AreaLightStage {
+        return area_light_stage<decltype(meshes)::value, decltype(normals)::value, decltype(disks)::value>;
+    }, ws.any_large_lights, ws.any_large_normals, ws.any_disk_lights);
 }
 
 /// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
@@ -2413,10 +2463,9 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (ggx.count > 0) (defer ? ggx_sample_stage<true> : ggx_sample_stage<false>)(b, ggx, ws);
         beckmann.count = ws.any_beckmann ? list_rough_lanes(b, n, ws, 1.f, beckmann.lanes) : 0;
         if (beckmann.count > 0) (defer ? beckmann_sample_stage<true> : beckmann_sample_stage<false>)(b, ws, beckmann);
-        // (Without emitter sampling the vector stage reads no aside sample; the mesh lights'
+        // (Without emitter sampling the vector stage reads no aside sample; the area lights'
         // stage writes every lane's, the other stage then those of its lights.)
-        if (ws.any_large_lights && cfg.emitter_sampling)
-            (ws.any_large_normals ? mesh_light_stage<true> : mesh_light_stage<false>)(b, n, ws);
+        if ((ws.any_large_lights || ws.any_disk_lights) && cfg.emitter_sampling) area_light_stage_for(ws)(b, n, ws);
         if (ws.any_small_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;

@@ -1014,15 +1014,18 @@ def dome_obj(rings: int, segments: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-@pytest.mark.parametrize("lights", ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified"])
-def test33_mesh_lights_of_many_triangles_sampled_in_lanes(tmp_path, monkeypatch, lights):
-    # Area lights on meshes of more than 8 triangles are sampled in SIMD lanes
-    # (mesh_light_stage: each lane's triangle found by a binary search of its light's CDF,
-    # its vertices gathered) rather than by emitter_sample() one lane at a time: a dome of
-    # 84 triangles of unequal areas with vertex normals, a strip of 40 seen from its back
-    # (flip_normals), beside small mesh lights and a point light (aside_emitter_stage's),
-    # with the stratified sampler. The image is path_li's bit for bit, and the lights'
-    # radiances are differentiated in lanes with the tape's gradients.
+@pytest.mark.parametrize("lights", ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified",
+                                    "two disks, one flipped, a dome and a point light"])
+def test33_mesh_lights_of_many_triangles_and_disks_sampled_in_lanes(tmp_path, monkeypatch, lights):
+    # Area lights on meshes of more than 8 triangles and on disks are sampled in SIMD lanes
+    # (area_light_stage: each lane's triangle found by a binary search of its light's CDF,
+    # its vertices gathered; a disk's point placed by its frame in double) rather than by
+    # emitter_sample() one lane at a time: a dome of 84 triangles of unequal areas with
+    # vertex normals, a strip of 40 seen from its back (flip_normals), disks seen from
+    # their front and from their back (flip_normals), beside small mesh lights and a point
+    # light (aside_emitter_stage's), with the stratified sampler. The image is path_li's
+    # bit for bit, and the lights' radiances are differentiated in lanes with the tape's
+    # gradients.
     (tmp_path / "dome.obj").write_text(dome_obj(4, 12))
     (tmp_path / "long.obj").write_text("".join(f"v {-1.0 + 0.1 * i} 0.25 {0.7 + 0.02 * (i % 3)}\nv {-1.0 + 0.1 * i} 0.25 0.9\n"
                                                for i in range(21)) +
@@ -1041,6 +1044,13 @@ def test33_mesh_lights_of_many_triangles_sampled_in_lanes(tmp_path, monkeypatch,
     if lights == "dome alone":
         for key in ("quad", "strip", "panel"):
             del d[key]
+    if "disks" in lights:
+        d["disk"] = {"type": "disk", "to_world": tr.Transform.translate([0.5, 1.4, 0.1]).rotate([1, 0, 0], 90).scale(0.15),
+                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [5.0, 4.0, 3.0]}}}
+        d["under"] = {"type": "disk", "flip_normals": True,
+                      "to_world": tr.Transform.translate([-0.5, 1.2, 0.2]).rotate([1, 0, 0], -90).scale(0.2),
+                      "emitter": {"type": "area", "radiance": 4.0}}
+        keys += ["disk.emitter.radiance.value", "under.emitter.radiance.value"]
     if "point light" in lights:
         d["lamp"] = LAMP
     if "stratified" in lights:
