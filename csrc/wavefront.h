@@ -20,9 +20,9 @@
 // (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
 // vector stage, from the same random numbers), with their emitter samples on area emitters
 // on spheres and on meshes of at most 8 triangles and on the `constant` environment (larger
-// meshes' samples are taken in SIMD lanes just before the vector stage, area_light_stage,
-// and other emitters' by emitter_sample() one path at a time; the vector stage then takes
-// them), and the smooth conductor and dielectric; their
+// meshes' and disks' samples are taken in SIMD lanes just before the vector stage,
+// area_light_stage, and other emitters' by emitter_sample() one path at a time; the vector
+// stage then takes them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with n samples of each
