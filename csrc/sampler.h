@@ -445,8 +445,8 @@ struct SamplerColumns {
     /// the ldsampler's scrambles.
     void begin(const SamplerDesc &desc, int n, const uint64_t *keys);
 
-    /// next_1d of samples k < n into u[k]. Those with draw[k] == 0 (draw null: none) do not
-    /// move on (their u[k] is written all the same).
+    /// next_1d of samples k < n into u[k]. Those with draw[k] == 0 do not move on (their u[k]
+    /// is written all the same); a null `draw` lets every sample draw.
     void next_1d(const SamplerDesc &desc, int n, const int *draw, float *u);
     /// next_2d of samples k < n into (ux[k], uy[k]), as next_1d.
     void next_2d(const SamplerDesc &desc, int n, const int *draw, float *ux, float *uy);
