@@ -186,6 +186,18 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         const Vec3 p[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, n[3];
         for (int t = 0; t < 8; ++t) ws.triangles.add(p, n, Vec3{0.f, 0.f, 1.f});
     };
+    // Triangle t of a mesh light into light columns: its vertices, vertex normals (zeros
+    // without them) and face normal.
+    auto add_mesh_triangle = [&scene](WavefrontScene::TriangleColumns &columns, const Shape &shape, uint32_t t) {
+        const Geometry &g = scene.geometry;
+        const Triangle &tri = g.triangles[shape.tri_begin + t];
+        Vec3 p[3], n[3];
+        for (int j = 0; j < 3; ++j) {
+            p[j] = g.positions[tri.v[j]];
+            n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
+        }
+        columns.add(p, n, tri.n);
+    };
     for (const Emitter &e : scene.emitters) {
         WavefrontScene::Light light;
         light.radiance = ctx.params.spectrum(e.radiance);
@@ -234,19 +246,10 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             unit_triangle();
             continue;
         }
-        const Geometry &g = scene.geometry;
         light.has_normals = shape.has_normals;
         light.flip_normals = shape.flip_normals;
         for (uint32_t i = 0; i < 9; ++i) ws.cdf.push_back(i <= shape.tri_count ? shape.tri_cdf[i] : 2.f);
-        for (uint32_t t = 0; t < 8; ++t) {
-            const Triangle &tri = g.triangles[shape.tri_begin + std::min(t, shape.tri_count - 1)];
-            Vec3 p[3], n[3];
-            for (int j = 0; j < 3; ++j) {
-                p[j] = g.positions[tri.v[j]];
-                n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
-            }
-            ws.triangles.add(p, n, tri.n);
-        }
+        for (uint32_t t = 0; t < 8; ++t) add_mesh_triangle(ws.triangles, shape, std::min(t, shape.tri_count - 1));
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
@@ -275,15 +278,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 cdf_first = int(ws.large_cdf.size());
                 first = int(ws.large_triangles.face_normal[0].size());
                 ws.large_cdf.insert(ws.large_cdf.end(), shape.tri_cdf.begin(), shape.tri_cdf.end());
-                for (uint32_t t = 0; t < shape.tri_count; ++t) {
-                    const Triangle &tri = g.triangles[shape.tri_begin + t];
-                    Vec3 p[3], n[3];
-                    for (int j = 0; j < 3; ++j) {
-                        p[j] = g.positions[tri.v[j]];
-                        n[j] = shape.has_normals ? g.normals[tri.v[j]] : Vec3();
-                    }
-                    ws.large_triangles.add(p, n, tri.n);
-                }
+                for (uint32_t t = 0; t < shape.tri_count; ++t) add_mesh_triangle(ws.large_triangles, shape, t);
                 most = std::max(most, shape.tri_count);
             }
             ws.large_count.push_back(count);
