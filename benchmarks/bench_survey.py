@@ -48,6 +48,9 @@ CUBE_LIGHT = """    <shape type="cube"><transform name="to_world"><scale x="0.15
 DISK_LIGHT = """    <shape type="disk"><transform name="to_world"><scale value="0.25"/><rotate x="1" angle="90"/><translate y="0.98"/></transform>
         <emitter type="area"><rgb name="radiance" value="18.387, 13.9873, 6.75357"/></emitter></shape>
 """
+CYLINDER_LIGHT = """    <shape type="cylinder"><point name="p0" x="-0.3" y="0.9" z="0"/><point name="p1" x="0.3" y="0.9" z="0"/><float name="radius" value="0.04"/>
+        <emitter type="area"><rgb name="radiance" value="18.387, 13.9873, 6.75357"/></emitter></shape>
+"""
 BALLS = "".join(f'    <shape type="sphere"><point name="center" x="{-0.8 + 0.2 * (i % 9):.2f}" y="-0.92" '
                 f'z="{0.5 - 0.3 * (i // 9):.2f}"/><float name="radius" value="0.08"/><ref id="gray"/></shape>\n'
                 for i in range(18))
@@ -65,6 +68,7 @@ VARIANTS = {
     "point_and_area": ("a point light beside its area light", lambda s: s.replace("</scene>", POINT + "</scene>")),
     "cube_light": ("its light a cube (12 triangles)", lambda s: s.replace(AREA, "").replace("</scene>", CUBE_LIGHT + "</scene>")),
     "disk_light": ("its light an analytic disk", lambda s: s.replace(AREA, "").replace("</scene>", DISK_LIGHT + "</scene>")),
+    "cylinder_light": ("its light a cylinder", lambda s: s.replace(AREA, "").replace("</scene>", CYLINDER_LIGHT + "</scene>")),
     "many_spheres": ("18 more spheres on its floor", lambda s: s.replace("</scene>", BALLS + "</scene>")),
     "stratified": ("the stratified sampler", lambda s: s.replace('<sampler type="independent">', '<sampler type="stratified">')),
     "direct4": ("`direct` with shading_samples 4", lambda s: s.replace(PATH_INTEGRATOR, DIRECT4)),

@@ -221,9 +221,10 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 light.has_normals = mesh->has_normals;
                 light.flip_normals = mesh->flip_normals;
                 ws.any_large_normals = ws.any_large_normals || mesh->has_normals;
-            } else if (mesh && mesh->kind == ShapeKind::Disk) {
-                ws.any_disk_lights = true;
-                light.disk = 1;
+            } else if (mesh && (mesh->kind == ShapeKind::Disk || mesh->kind == ShapeKind::Cylinder)) {
+                ws.any_analytic_lights = true;
+                light.disk = mesh->kind == ShapeKind::Disk ? 1 : 0;
+                light.cylinder = mesh->kind == ShapeKind::Cylinder ? 1 : 0;
                 light.area = mesh->area;
                 light.flip_normals = mesh->flip_normals;
             } else {
@@ -253,18 +254,22 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
-    // The disk lights' frames and normals (area_light_stage), zeros for the other lights.
-    for (int c = 0; c < 15; ++c) ws.disk_frame[c].assign(ws.lights.size(), 0.f);
-    for (size_t i = 0; ws.any_disk_lights && i < ws.lights.size(); ++i) {
-        if (!ws.lights[i].disk) continue;
+    // The disk and cylinder lights' frames, normals and sizes (area_light_stage), zeros for
+    // the other lights.
+    for (int c = 0; c < 17; ++c) ws.analytic_frame[c].assign(ws.lights.size(), 0.f);
+    for (size_t i = 0; ws.any_analytic_lights && i < ws.lights.size(); ++i) {
+        if (!ws.lights[i].disk && !ws.lights[i].cylinder) continue;
         const Shape &shape = scene.geometry.shapes[scene.emitters[i].shape];
         const Vec3 frame[5] = {shape.center, shape.local_x, shape.local_y, shape.local_z, shape.normal};
         for (int v = 0; v < 5; ++v)
-            for (int a = 0; a < 3; ++a) ws.disk_frame[3 * v + a][i] = frame[v][a];
+            for (int a = 0; a < 3; ++a) ws.analytic_frame[3 * v + a][i] = frame[v][a];
+        ws.analytic_frame[15][i] = shape.radius;
+        ws.analytic_frame[16][i] = shape.length;
     }
     // The large mesh lights' triangles and CDFs (area_light_stage), after a unit triangle and
-    // its CDF, which the other lights' entries point at (all lights' with disks alone).
-    if (ws.any_large_lights || ws.any_disk_lights) {
+    // its CDF, which the other lights' entries point at (all lights' with disks and
+    // cylinders alone).
+    if (ws.any_large_lights || ws.any_analytic_lights) {
         const Geometry &g = scene.geometry;
         const Vec3 unit[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, none[3];
         ws.large_cdf = {0.f, 1.f};
@@ -1023,7 +1028,8 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         const Vec2 u{b.pe0[k], b.pe1[k]};  // (draw_stage's)
         const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
         std::optional<EmitterSample<RGB<float>>> es;
-        if (ws.lights[size_t(index)].large || ws.lights[size_t(index)].disk) continue;  // (area_light_stage's)
+        const WavefrontScene::Light &l = ws.lights[size_t(index)];
+        if (l.large || l.disk || l.cylinder) continue;  // (area_light_stage's)
         if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
             es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
         const EmitterSample<RGB<float>> none;
@@ -1039,16 +1045,17 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
 }
 
 /// The emitter samples of the lanes whose emitter is an area light on a mesh of more than 8
-/// triangles (Light::large) or on a disk (Light::disk), in SIMD lanes, into the a* columns as
-/// aside_emitter_stage's (which runs after it and leaves those lanes alone):
-/// emitter_sample()'s area branch and Geometry::sample_direction's mesh and disk branches,
-/// the same operations. A mesh light's triangle is found by a binary search of its CDF
-/// without branches (std::upper_bound's count, large_steps halvings for every lane), its
-/// vertices and normals gathered (WavefrontScene::large_triangles; the vertex normals only
-/// where some of those lights have them: Normals); a disk's point is the concentric map's,
-/// placed by its frame in double (Shape::world_point; WavefrontScene::disk_frame). The code
-/// of the kind a scene lacks is left out (Meshes, Disks).
-template <bool Meshes, bool Normals, bool Disks>
+/// triangles (Light::large), on a disk or on a cylinder (Light::disk, cylinder), in SIMD
+/// lanes, into the a* columns as aside_emitter_stage's (which runs after it and leaves those
+/// lanes alone): emitter_sample()'s area branch and Geometry::sample_direction's mesh, disk
+/// and cylinder branches, the same operations. A mesh light's triangle is found by a binary
+/// search of its CDF without branches (std::upper_bound's count, large_steps halvings for
+/// every lane), its vertices and normals gathered (WavefrontScene::large_triangles; the
+/// vertex normals only where some of those lights have them: Normals); a disk's point is the
+/// concentric map's, a cylinder's at angle 2 pi u.y and height u.x along its axis, placed by
+/// the shape's frame in double (Shape::world_point; WavefrontScene::analytic_frame). The code
+/// of the kinds a scene lacks is left out (Meshes, Analytic).
+template <bool Meshes, bool Normals, bool Analytic>
 void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
@@ -1069,8 +1076,7 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
         const int index = std::min(int(u * float(n_lights)), n_lights - 1);
         chosen[k] = index;
         ux[k] = std::min(u * float(n_lights) - float(index), 0.99999994f);
-        base[k] = cdf_firsts[index] + 1;
-        left[k] = counts[index];
+        if constexpr (Meshes) base[k] = cdf_firsts[index] + 1, left[k] = counts[index];
     }
     for (int step = 0; Meshes && step < ws.large_steps; ++step) {
 #pragma GCC ivdep
@@ -1080,51 +1086,66 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
             left[k] -= half;
         }
     }
-    // A disk light's point, uniform in area (in a loop of its own: with the double
-    // precision products in the loop below, GCC vectorised neither).
-    alignas(64) float dpx[B], dpy[B], dpz[B];
-    const float *f[15];  // (a column each: gathers of one base address)
-    for (int c = 0; c < 15; ++c) f[c] = ws.disk_frame[c].data();
-    if constexpr (Disks) {
+    // A disk or cylinder light's point, uniform in area, and its normal (in a loop of its
+    // own: with the double precision products in the loop below, GCC vectorised neither):
+    // the disk's, or the cylinder's at that angle.
+    alignas(64) float dpx[B], dpy[B], dpz[B], dnx[B], dny[B], dnz[B];
+    const float *f[17];  // (a column each: gathers of one base address)
+    for (int c = 0; c < 17; ++c) f[c] = ws.analytic_frame[c].data();
+    if constexpr (Analytic) {
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
             const int i = chosen[k];
+            const bool cylinder = lights[i].cylinder != 0;
             const Vec2 q = warp::square_to_uniform_disk_concentric(Vec2{ux[k], b.pe1[k]});
-            const double q0 = q.x, q1 = q.y, q2 = 0.0;
+            const Vec2 cs = warp::cossin_2pi(b.pe1[k]);  // (cos, sin) of phi = 2 pi u.y
+            const double radius = f[15][i], length = f[16][i];
+            const double q0 = cylinder ? double(cs.x) * radius : double(q.x);
+            const double q1 = cylinder ? double(cs.y) * radius : double(q.y);
+            const double q2 = cylinder ? double(ux[k]) * length : 0.0;
             dpx[k] = float(double(f[0][i]) + double(f[3][i]) * q0 + double(f[6][i]) * q1 + double(f[9][i]) * q2);
             dpy[k] = float(double(f[1][i]) + double(f[4][i]) * q0 + double(f[7][i]) * q1 + double(f[10][i]) * q2);
             dpz[k] = float(double(f[2][i]) + double(f[5][i]) * q0 + double(f[8][i]) * q1 + double(f[11][i]) * q2);
+            const Vec3 radial = normalize(Vec3{f[3][i], f[4][i], f[5][i]} * cs.x + Vec3{f[6][i], f[7][i], f[8][i]} * cs.y);
+            const Vec3 n = select(cylinder, radial, Vec3{f[12][i], f[13][i], f[14][i]});
+            dnx[k] = n.x, dny[k] = n.y, dnz[k] = n.z;
         }
     }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
-        const int index = chosen[k], c = cdf_firsts[index];
+        const int index = chosen[k];
         const WavefrontScene::Light &l = lights[index];
-        // The triangle: the CDF's entries at most u.x (upper_bound), but the last.
-        const int le = base[k] - (c + 1) + (cdf[base[k]] <= ux[k] ? 1 : 0);
-        const int local = std::min(le, counts[index] - 1);
-        const float lo = cdf[c + local], width = cdf[c + local + 1] - lo;
-        Vec2 u{std::min(width > 0.f ? (ux[k] - lo) / width : 0.f, 0.99999994f), b.pe1[k]};
-        // A uniform point on it, its normal (interpolated, or the face's) and the face normal.
-        const int t = firsts[index] + local;
-        const Vec2 bc = warp::square_to_uniform_triangle(u);
-        const float b0 = 1.f - bc.x - bc.y;
-        Vec3 lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
-        Vec3 face_n = tris.face_normal(t);
-        Vec3 ln = face_n;
-        if constexpr (Normals) {
-            const Vec3 vn = normalize(tris.normal(0, t) * b0 + tris.normal(1, t) * bc.x + tris.normal(2, t) * bc.y);
-            ln = select(l.has_normals, vn, face_n);
+        Vec3 lp, face_n, ln;
+        if constexpr (Meshes) {
+            // The triangle: the CDF's entries at most u.x (upper_bound), but the last.
+            const int c = cdf_firsts[index];
+            const int le = base[k] - (c + 1) + (cdf[base[k]] <= ux[k] ? 1 : 0);
+            const int local = std::min(le, counts[index] - 1);
+            const float lo = cdf[c + local], width = cdf[c + local + 1] - lo;
+            Vec2 u{std::min(width > 0.f ? (ux[k] - lo) / width : 0.f, 0.99999994f), b.pe1[k]};
+            // A uniform point on it, its normal (interpolated, or the face's) and the face
+            // normal.
+            const int t = firsts[index] + local;
+            const Vec2 bc = warp::square_to_uniform_triangle(u);
+            const float b0 = 1.f - bc.x - bc.y;
+            lp = tris.vertex(0, t) * b0 + tris.vertex(1, t) * bc.x + tris.vertex(2, t) * bc.y;
+            face_n = tris.face_normal(t);
+            ln = face_n;
+            if constexpr (Normals) {
+                const Vec3 vn = normalize(tris.normal(0, t) * b0 + tris.normal(1, t) * bc.x + tris.normal(2, t) * bc.y);
+                ln = select(l.has_normals, vn, face_n);
+            }
+            ln = select(l.flip_normals, -ln, ln);
         }
-        ln = select(l.flip_normals, -ln, ln);
-        if constexpr (Disks) {
-            // A disk's point (the loop above's) and its normal (the area's too).
-            Vec3 dn{f[12][index], f[13][index], f[14][index]};
+        if constexpr (Analytic) {
+            // A disk's or cylinder's point and normal (the loop above's; the area's too; in
+            // every lane without mesh lights: the other lanes' samples are not taken).
+            Vec3 dn{dnx[k], dny[k], dnz[k]};
             dn = select(l.flip_normals, -dn, dn);
-            const bool disk = l.disk != 0;
-            lp = select(disk, Vec3{dpx[k], dpy[k], dpz[k]}, lp);
-            face_n = select(disk, dn, face_n);
-            ln = select(disk, dn, ln);
+            const bool analytic = !Meshes || l.disk + l.cylinder != 0;
+            lp = select(analytic, Vec3{dpx[k], dpy[k], dpz[k]}, lp);
+            face_n = select(analytic, dn, face_n);
+            ln = select(analytic, dn, ln);
         }
         // The direction and its density (by area, converted to solid angle with the face
         // normal), and whether it is a sample: pdf > 0 and d facing the light's front.
@@ -1164,9 +1185,9 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
 /// The instance of area_light_stage for a scene's lights.
 using AreaLightStage = void (*)(Batch &, int, const WavefrontScene &);
 AreaLightStage area_light_stage_for(const WavefrontScene &ws) {
-    return with_flags([](auto meshes, auto normals, auto disks) -> AreaLightStage {
-        return area_light_stage<decltype(meshes)::value, decltype(normals)::value, decltype(disks)::value>;
-    }, ws.any_large_lights, ws.any_large_normals, ws.any_disk_lights);
+    return with_flags([](auto meshes, auto normals, auto analytic) -> AreaLightStage {
+        return area_light_stage<decltype(meshes)::value, decltype(normals)::value, decltype(analytic)::value>;
+    }, ws.any_large_lights, ws.any_large_normals, ws.any_analytic_lights);
 }
 
 /// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
@@ -2460,7 +2481,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (beckmann.count > 0) (defer ? beckmann_sample_stage<true> : beckmann_sample_stage<false>)(b, ws, beckmann);
         // (Without emitter sampling the vector stage reads no aside sample; the area lights'
         // stage writes every lane's, the other stage then those of its lights.)
-        if ((ws.any_large_lights || ws.any_disk_lights) && cfg.emitter_sampling) area_light_stage_for(ws)(b, n, ws);
+        if ((ws.any_large_lights || ws.any_analytic_lights) && cfg.emitter_sampling) area_light_stage_for(ws)(b, n, ws);
         if (ws.any_small_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;

@@ -20,7 +20,7 @@
 // (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
 // vector stage, from the same random numbers), with their emitter samples on area emitters
 // on spheres and on meshes of at most 8 triangles and on the `constant` environment (larger
-// meshes' and disks' samples are taken in SIMD lanes just before the vector stage,
+// meshes', disks' and cylinders' samples are taken in SIMD lanes just before the vector stage,
 // area_light_stage, and other emitters' by emitter_sample() one path at a time; the vector
 // stage then takes them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
@@ -85,11 +85,12 @@ struct WavefrontScene {
         /// 1: an emitter the vector stage does not sample itself (a point light, an area light
         /// on a disk, a cylinder or a mesh of more than 8 triangles; any new emitter type):
         /// emitter_sample() samples it, one lane at a time, before the vector stage, which
-        /// then takes that sample (no mesh in the flat arrays), else 0. A large mesh's and a
-        /// disk's are sampled by area_light_stage instead, in SIMD lanes.
+        /// then takes that sample (no mesh in the flat arrays), else 0. A large mesh's, a
+        /// disk's and a cylinder's are sampled by area_light_stage instead, in SIMD lanes.
         float aside = 0.f;
-        int large = 0;  ///< 1: an area light on a mesh of more than 8 triangles (large_*)
-        int disk = 0;   ///< 1: an area light on a disk (disk_frame)
+        int large = 0;     ///< 1: an area light on a mesh of more than 8 triangles (large_*)
+        int disk = 0;      ///< 1: an area light on a disk (analytic_frame)
+        int cylinder = 0;  ///< 1: an area light on a cylinder (analytic_frame)
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     /// A material whose input a is a bilinear bitmap (and t a constant, or none): the shade
@@ -151,7 +152,7 @@ struct WavefrontScene {
     bool any_aside_lights = false;    ///< whether some are sampled aside (Light::aside)
     bool any_large_lights = false;    ///< whether some of those are meshes (Light::large)
     bool any_large_normals = false;   ///< whether some of those meshes have vertex normals
-    bool any_disk_lights = false;     ///< whether some aside lights are disks (Light::disk)
+    bool any_analytic_lights = false;  ///< whether some are disks or cylinders (Light::disk, cylinder)
     bool any_small_aside_lights = false;  ///< whether others are (aside_emitter_stage's)
     /// Whether the sampler is not `independent`: then draw_stage draws each vertex's numbers
     /// with SamplerColumns (its permutations and jitter, in lanes too), where it draws the
@@ -185,10 +186,11 @@ struct WavefrontScene {
     std::vector<float> large_cdf;
     TriangleColumns large_triangles;
     int large_steps = 0;
-    /// A disk light's centre, local_x, local_y, local_z and unflipped normal (Shape's), as 15
-    /// columns of an entry per light (zeros for the other lights): axis a of vector v at
-    /// disk_frame[3 v + a].
-    std::vector<float> disk_frame[15];
+    /// A disk or cylinder light's centre, local_x, local_y, local_z and unflipped normal
+    /// (Shape's; a cylinder's normal unused), as 15 columns of an entry per light (zeros for
+    /// the other lights): axis a of vector v at analytic_frame[3 v + a]; then its radius and
+    /// length at analytic_frame[15] and [16] (a cylinder's).
+    std::vector<float> analytic_frame[17];
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else

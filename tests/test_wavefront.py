@@ -1015,17 +1015,19 @@ def dome_obj(rings: int, segments: int) -> str:
 
 
 @pytest.mark.parametrize("lights", ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified",
-                                    "two disks, one flipped, a dome and a point light"])
-def test33_mesh_lights_of_many_triangles_and_disks_sampled_in_lanes(tmp_path, monkeypatch, lights):
-    # Area lights on meshes of more than 8 triangles and on disks are sampled in SIMD lanes
-    # (area_light_stage: each lane's triangle found by a binary search of its light's CDF,
-    # its vertices gathered; a disk's point placed by its frame in double) rather than by
-    # emitter_sample() one lane at a time: a dome of 84 triangles of unequal areas with
-    # vertex normals, a strip of 40 seen from its back (flip_normals), disks seen from
-    # their front and from their back (flip_normals), beside small mesh lights and a point
-    # light (aside_emitter_stage's), with the stratified sampler. The image is path_li's
-    # bit for bit, and the lights' radiances are differentiated in lanes with the tape's
-    # gradients.
+                                    "two disks, one flipped, a dome and a point light",
+                                    "two cylinders, one flipped, and a disk", "a cylinder alone"])
+def test33_mesh_lights_of_many_triangles_disks_and_cylinders_sampled_in_lanes(tmp_path, monkeypatch, lights):
+    # Area lights on meshes of more than 8 triangles, on disks and on cylinders are sampled
+    # in SIMD lanes (area_light_stage: each lane's triangle found by a binary search of its
+    # light's CDF, its vertices gathered; a disk's or cylinder's point placed by its frame in
+    # double) rather than by emitter_sample() one lane at a time: a dome of 84 triangles of
+    # unequal areas with vertex normals, a strip of 40 seen from its back (flip_normals),
+    # disks seen from their front and from their back (flip_normals), a slanted cylinder
+    # and a flipped one lighting the floor through its open end, beside small mesh lights
+    # and a point light (aside_emitter_stage's), with the stratified sampler. The image is
+    # path_li's bit for bit, and the lights' radiances are differentiated in lanes with the
+    # tape's gradients.
     (tmp_path / "dome.obj").write_text(dome_obj(4, 12))
     (tmp_path / "long.obj").write_text("".join(f"v {-1.0 + 0.1 * i} 0.25 {0.7 + 0.02 * (i % 3)}\nv {-1.0 + 0.1 * i} 0.25 0.9\n"
                                                for i in range(21)) +
@@ -1041,9 +1043,19 @@ def test33_mesh_lights_of_many_triangles_and_disks_sampled_in_lanes(tmp_path, mo
         d["long"] = {"type": "obj", "filename": str(tmp_path / "long.obj"), "flip_normals": True,
                      "emitter": {"type": "area", "radiance": 3.0}}
         keys.append("long.emitter.radiance.value")
-    if lights == "dome alone":
+    if lights in ("dome alone", "a cylinder alone"):
         for key in ("quad", "strip", "panel"):
             del d[key]
+    if "cylinder" in lights:
+        d["tube"] = {"type": "cylinder", "p0": [-0.6, 0.9, -0.3], "p1": [0.4, 1.3, 0.2], "radius": 0.06,
+                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [9.0, 7.0, 5.0]}}}
+        keys.append("tube.emitter.radiance.value")
+    if "two cylinders" in lights:
+        d["shade"] = {"type": "cylinder", "p0": [0.5, 1.0, 0.1], "p1": [0.5, 1.3, 0.1], "radius": 0.25, "flip_normals": True,
+                      "emitter": {"type": "area", "radiance": 5.0}}
+        d["disk"] = {"type": "disk", "to_world": tr.Transform.translate([-0.5, 1.4, 0.1]).rotate([1, 0, 0], 90).scale(0.15),
+                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [5.0, 4.0, 3.0]}}}
+        keys += ["shade.emitter.radiance.value", "disk.emitter.radiance.value"]
     if "disks" in lights:
         d["disk"] = {"type": "disk", "to_world": tr.Transform.translate([0.5, 1.4, 0.1]).rotate([1, 0, 0], 90).scale(0.15),
                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [5.0, 4.0, 3.0]}}}
