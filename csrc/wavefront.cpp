@@ -67,6 +67,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
 #endif
     const char *env = std::getenv("TORCH_RBPT_WAVEFRONT");
     if (env && std::strcmp(env, "0") == 0) return std::nullopt;
+    // (`aside`: every light the vector stage does not sample itself is sampled by
+    // aside_emitter_stage, as a new emitter type is, none by lane_emitter_stage.)
+    const bool lane_emitters = !(env && std::strcmp(env, "aside") == 0);
     const Scene &scene = ctx.scene;
     std::optional<IntegratorSettings> path = path_settings(cfg);
     if (!path || path->max_depth == 0) return std::nullopt;
@@ -214,7 +217,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             ws.any_aside_lights = true;
             light.aside = 1.f;
             const Shape *mesh = e.type == EmitterType::Area ? &scene.geometry.shapes[e.shape] : nullptr;
-            if (mesh && mesh->kind == ShapeKind::Mesh && mesh->tri_count > 8) {
+            if (!lane_emitters) {
+                ws.any_small_aside_lights = true;
+            } else if (mesh && mesh->kind == ShapeKind::Mesh && mesh->tri_count > 8) {
                 ws.any_large_lights = true;
                 light.large = 1;
                 light.area = mesh->area;
@@ -227,6 +232,9 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 light.cylinder = mesh->kind == ShapeKind::Cylinder ? 1 : 0;
                 light.area = mesh->area;
                 light.flip_normals = mesh->flip_normals;
+            } else if (e.type == EmitterType::Point) {
+                ws.any_point_lights = true;
+                light.point = 1;
             } else {
                 ws.any_small_aside_lights = true;
             }
@@ -254,22 +262,28 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
         ws.lights.push_back(light);
         ws.any_mesh_lights = true;
     }
-    // The disk and cylinder lights' frames, normals and sizes (area_light_stage), zeros for
-    // the other lights.
-    for (int c = 0; c < 17; ++c) ws.analytic_frame[c].assign(ws.lights.size(), 0.f);
-    for (size_t i = 0; ws.any_analytic_lights && i < ws.lights.size(); ++i) {
-        if (!ws.lights[i].disk && !ws.lights[i].cylinder) continue;
+    // The disk and cylinder lights' frames, normals and sizes and the point lights' positions
+    // (lane_emitter_stage), zeros for the other lights.
+    for (int c = 0; c < 17; ++c) ws.light_frame[c].assign(ws.lights.size(), 0.f);
+    for (size_t i = 0; i < ws.lights.size(); ++i) {
+        WavefrontScene::Light &light = ws.lights[i];
+        light.lanes = light.large + light.disk + light.cylinder + light.point != 0 ? 1 : 0;
+        ws.any_lane_lights = ws.any_lane_lights || light.lanes;
+        if (light.point) {
+            for (int a = 0; a < 3; ++a) ws.light_frame[a][i] = scene.emitters[i].position[a];
+        }
+        if (!light.disk && !light.cylinder) continue;
         const Shape &shape = scene.geometry.shapes[scene.emitters[i].shape];
         const Vec3 frame[5] = {shape.center, shape.local_x, shape.local_y, shape.local_z, shape.normal};
         for (int v = 0; v < 5; ++v)
-            for (int a = 0; a < 3; ++a) ws.analytic_frame[3 * v + a][i] = frame[v][a];
-        ws.analytic_frame[15][i] = shape.radius;
-        ws.analytic_frame[16][i] = shape.length;
+            for (int a = 0; a < 3; ++a) ws.light_frame[3 * v + a][i] = frame[v][a];
+        ws.light_frame[15][i] = shape.radius;
+        ws.light_frame[16][i] = shape.length;
     }
-    // The large mesh lights' triangles and CDFs (area_light_stage), after a unit triangle and
-    // its CDF, which the other lights' entries point at (all lights' with disks and
-    // cylinders alone).
-    if (ws.any_large_lights || ws.any_analytic_lights) {
+    // The large mesh lights' triangles and CDFs (lane_emitter_stage), after a unit triangle
+    // and its CDF, which the other lights' entries point at (all lights' without large
+    // mesh lights).
+    if (ws.any_lane_lights) {
         const Geometry &g = scene.geometry;
         const Vec3 unit[3] = {Vec3{0.f, 0.f, 0.f}, Vec3{1.f, 0.f, 0.f}, Vec3{0.f, 1.f, 0.f}}, none[3];
         ws.large_cdf = {0.f, 1.f};
@@ -684,9 +698,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
     const float nee = cfg.emitter_sampling ? 1.f : 0.f, bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
     if constexpr (OneLight) {
         // (A light of at most 2 triangles, as a rectangle, picks from 2: its CDF is padded
-        // from its fourth entry on.)
-        if (ws.cdf[3] > 1.f) light_point_stage<2>(b, n, ws);
-        else light_point_stage<8>(b, n, ws);
+        // from its fourth entry on. A light that is not a mesh takes none: the loop below
+        // reads the columns, whatever earlier batches left there, and selects its own
+        // sample over them.)
+        if (ws.any_mesh_lights) (ws.cdf[3] > 1.f ? light_point_stage<2> : light_point_stage<8>)(b, n, ws);
     }
 #pragma GCC ivdep
     for (int k = 0; k < n; ++k) {
@@ -1029,7 +1044,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         const int index = std::min(int(u.x * float(n_lights)), n_lights - 1);  // (emitter_sample's choice)
         std::optional<EmitterSample<RGB<float>>> es;
         const WavefrontScene::Light &l = ws.lights[size_t(index)];
-        if (l.large || l.disk || l.cylinder) continue;  // (area_light_stage's)
+        if (l.lanes) continue;  // (lane_emitter_stage's)
         if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
             es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
         const EmitterSample<RGB<float>> none;
@@ -1044,19 +1059,21 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
     }
 }
 
-/// The emitter samples of the lanes whose emitter is an area light on a mesh of more than 8
-/// triangles (Light::large), on a disk or on a cylinder (Light::disk, cylinder), in SIMD
-/// lanes, into the a* columns as aside_emitter_stage's (which runs after it and leaves those
-/// lanes alone): emitter_sample()'s area branch and Geometry::sample_direction's mesh, disk
-/// and cylinder branches, the same operations. A mesh light's triangle is found by a binary
-/// search of its CDF without branches (std::upper_bound's count, large_steps halvings for
-/// every lane), its vertices and normals gathered (WavefrontScene::large_triangles; the
-/// vertex normals only where some of those lights have them: Normals); a disk's point is the
-/// concentric map's, a cylinder's at angle 2 pi u.y and height u.x along its axis, placed by
-/// the shape's frame in double (Shape::world_point; WavefrontScene::analytic_frame). The code
-/// of the kinds a scene lacks is left out (Meshes, Analytic).
-template <bool Meshes, bool Normals, bool Analytic>
-void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
+/// The emitter samples of the lanes whose emitter is sampled in lanes before the vector
+/// stage (Light::lanes: an area light on a mesh of more than 8 triangles, on a disk or on a
+/// cylinder, or a point light), into the a* columns as aside_emitter_stage's (which runs
+/// after it and leaves those lanes alone): emitter_sample()'s area and point branches and
+/// Geometry::sample_direction's mesh, disk and cylinder branches, the same operations. A mesh
+/// light's triangle is found by a binary search of its CDF without branches
+/// (std::upper_bound's count, large_steps halvings for every lane), its vertices and normals
+/// gathered (WavefrontScene::large_triangles; the vertex normals only where some of those
+/// lights have them: Normals); a disk's point is the concentric map's, a cylinder's at angle
+/// 2 pi u.y and height u.x along its axis, placed by the shape's frame in double
+/// (Shape::world_point; WavefrontScene::light_frame); a point light's is its position, a
+/// delta sample. The code of the kinds a scene lacks is left out (Meshes, Analytic, Points).
+template <bool Meshes, bool Normals, bool Analytic, bool Points>
+void lane_emitter_stage(Batch &b, int n, const WavefrontScene &ws) {
+    if constexpr (!Meshes && !Analytic && !Points) return;  // (never called)
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
     const int n_lights = int(ws.lights.size());
@@ -1086,12 +1103,19 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
             left[k] -= half;
         }
     }
+    const float *f[17];  // (WavefrontScene::light_frame, a column each: gathers of one base address)
+    for (int c = 0; c < 17; ++c) f[c] = ws.light_frame[c].data();
+    // A point light's position (gathered in a loop of its own: under the condition below
+    // it became a masked gather, which GCC does not vectorise for AVX2).
+    alignas(64) float ppx[B], ppy[B], ppz[B];
+    if constexpr (Points) {
+#pragma GCC ivdep
+        for (int k = 0; k < n; ++k) ppx[k] = f[0][chosen[k]], ppy[k] = f[1][chosen[k]], ppz[k] = f[2][chosen[k]];
+    }
     // A disk or cylinder light's point, uniform in area, and its normal (in a loop of its
     // own: with the double precision products in the loop below, GCC vectorised neither):
     // the disk's, or the cylinder's at that angle.
     alignas(64) float dpx[B], dpy[B], dpz[B], dnx[B], dny[B], dnz[B];
-    const float *f[17];  // (a column each: gathers of one base address)
-    for (int c = 0; c < 17; ++c) f[c] = ws.analytic_frame[c].data();
     if constexpr (Analytic) {
 #pragma GCC ivdep
         for (int k = 0; k < n; ++k) {
@@ -1147,21 +1171,37 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
             face_n = select(analytic, dn, face_n);
             ln = select(analytic, dn, ln);
         }
+        // A point light's position.
+        // (Conditions as float flags, 1 or 0, narrowed by selects: GCC does not vectorise
+        // this loop with && or || of them.)
+        const float point = Points && l.point != 0 ? 1.f : 0.f;
+        if constexpr (Points) lp = select(point != 0.f, Vec3{ppx[k], ppy[k], ppz[k]}, lp);
         // The direction and its density (by area, converted to solid angle with the face
-        // normal), and whether it is a sample: pdf > 0 and d facing the light's front.
+        // normal), and whether it is a sample: pdf > 0 and d facing the light's front (a
+        // point light's always is).
         const Vec3 p{b.px[k], b.py[k], b.pz[k]};
         Vec3 d = lp - p;
         const float dist2 = squared_norm(d), dist = std::sqrt(dist2);
         d = d * (1.f / dist);
-        const float abs_cos = std::abs(dot(face_n, d));
-        float pdf = abs_cos > 0.f ? dist2 / (l.area * abs_cos) : 0.f;
-        pdf = dist != 0.f ? pdf : 0.f;
         const WavefrontScene::Material &m = mats[b.mat[k]];
         float ok = b.shade[k] != 0 ? 1.f : 0.f;
         ok = m.diffuse + m.rough != 0.f ? ok : 0.f;
-        ok = pdf > 0.f ? ok : 0.f;
-        ok = dot(d, ln) < 0.f ? ok : 0.f;
-        const float es_pdf = pdf / float(n_lights), inv_pdf = 1.f / es_pdf;
+        float es_pdf = 0.f, inv_pdf = 0.f, facing = 0.f;
+        if constexpr (Meshes || Analytic) {
+            const float abs_cos = std::abs(dot(face_n, d));
+            float pdf = abs_cos > 0.f ? dist2 / (l.area * abs_cos) : 0.f;
+            pdf = dist != 0.f ? pdf : 0.f;
+            facing = pdf > 0.f ? 1.f : 0.f;
+            facing = dot(d, ln) < 0.f ? facing : 0.f;
+            es_pdf = pdf / float(n_lights), inv_pdf = 1.f / es_pdf;
+        }
+        // (A point light's "density" 1 / n and weight intensity n / dist^2.)
+        if constexpr (Points) {
+            facing = point != 0.f ? 1.f : facing;
+            es_pdf = point != 0.f ? 1.f / float(n_lights) : es_pdf;
+            inv_pdf = point != 0.f ? float(n_lights) / dist2 : inv_pdf;
+        }
+        ok = facing != 0.f ? ok : 0.f;
         // Into the a* columns (no sample: EmitterSample's defaults), of every lane: the
         // other lights' lanes take aside_emitter_stage's after, or none (unconditional
         // stores: selects with the columns' old values became masked stores, which GCC does
@@ -1177,17 +1217,19 @@ void area_light_stage(Batch &b, int n, const WavefrontScene &ws) {
         b.awr[k] = radiance[3 * index] * scale;
         b.awg[k] = radiance[3 * index + 1] * scale;
         b.awb[k] = radiance[3 * index + 2] * scale;
-        b.adelta[k] = 0.f;
-        b.ainf[k] = sample ? 0.f : 1.f;
+        b.adelta[k] = sample ? point : 0.f;
+        const float infinite = dist != Infinity ? 0.f : 1.f;
+        b.ainf[k] = sample ? infinite : 1.f;
     }
 }
 
-/// The instance of area_light_stage for a scene's lights.
-using AreaLightStage = void (*)(Batch &, int, const WavefrontScene &);
-AreaLightStage area_light_stage_for(const WavefrontScene &ws) {
-    return with_flags([](auto meshes, auto normals, auto analytic) -> AreaLightStage {
-        return area_light_stage<decltype(meshes)::value, decltype(normals)::value, decltype(analytic)::value>;
-    }, ws.any_large_lights, ws.any_large_normals, ws.any_analytic_lights);
+/// The instance of lane_emitter_stage for a scene's lights.
+using LaneEmitterStage = void (*)(Batch &, int, const WavefrontScene &);
+LaneEmitterStage lane_emitter_stage_for(const WavefrontScene &ws) {
+    return with_flags([](auto meshes, auto normals, auto analytic, auto points) -> LaneEmitterStage {
+        return lane_emitter_stage<decltype(meshes)::value, decltype(normals)::value, decltype(analytic)::value,
+                                  decltype(points)::value>;
+    }, ws.any_large_lights, ws.any_large_normals, ws.any_analytic_lights, ws.any_point_lights);
 }
 
 /// The rough lanes: the BSDF samples and the emitter samples of the BSDFs of a distribution
@@ -2481,7 +2523,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (beckmann.count > 0) (defer ? beckmann_sample_stage<true> : beckmann_sample_stage<false>)(b, ws, beckmann);
         // (Without emitter sampling the vector stage reads no aside sample; the area lights'
         // stage writes every lane's, the other stage then those of its lights.)
-        if ((ws.any_large_lights || ws.any_analytic_lights) && cfg.emitter_sampling) area_light_stage_for(ws)(b, n, ws);
+        if (ws.any_lane_lights && cfg.emitter_sampling) lane_emitter_stage_for(ws)(b, n, ws);
         if (ws.any_small_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;

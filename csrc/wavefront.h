@@ -20,9 +20,9 @@
 // (GGX and Beckmann; Beckmann's visible normals are sampled one path at a time, before the
 // vector stage, from the same random numbers), with their emitter samples on area emitters
 // on spheres and on meshes of at most 8 triangles and on the `constant` environment (larger
-// meshes', disks' and cylinders' samples are taken in SIMD lanes just before the vector stage,
-// area_light_stage, and other emitters' by emitter_sample() one path at a time; the vector
-// stage then takes them), and the smooth conductor and dielectric; their
+// meshes', disks', cylinders' and point lights' samples are taken in SIMD lanes just before
+// the vector stage, lane_emitter_stage, and other emitters' by emitter_sample() one path at
+// a time; the vector stage then takes them), and the smooth conductor and dielectric; their
 // reflectances and transmittances (constants, textures or mesh attributes) are looked up in
 // the shade stage. Vertices of other BSDFs are shaded by path_vertex(), path_li's own code,
 // in the shade stage. It runs for the `path` integrator (and `direct` with n samples of each
@@ -85,12 +85,14 @@ struct WavefrontScene {
         /// 1: an emitter the vector stage does not sample itself (a point light, an area light
         /// on a disk, a cylinder or a mesh of more than 8 triangles; any new emitter type):
         /// emitter_sample() samples it, one lane at a time, before the vector stage, which
-        /// then takes that sample (no mesh in the flat arrays), else 0. A large mesh's, a
-        /// disk's and a cylinder's are sampled by area_light_stage instead, in SIMD lanes.
+        /// then takes that sample (no mesh in the flat arrays), else 0. Those of the kinds
+        /// below are sampled by lane_emitter_stage instead, in SIMD lanes (`lanes` 1).
         float aside = 0.f;
+        int lanes = 0;
         int large = 0;     ///< 1: an area light on a mesh of more than 8 triangles (large_*)
-        int disk = 0;      ///< 1: an area light on a disk (analytic_frame)
-        int cylinder = 0;  ///< 1: an area light on a cylinder (analytic_frame)
+        int disk = 0;      ///< 1: an area light on a disk (light_frame)
+        int cylinder = 0;  ///< 1: an area light on a cylinder (light_frame)
+        int point = 0;     ///< 1: a point light (light_frame)
     };
     std::vector<Material> materials;  ///< per Scene::bsdfs
     /// A material whose input a is a bilinear bitmap (and t a constant, or none): the shade
@@ -153,6 +155,8 @@ struct WavefrontScene {
     bool any_large_lights = false;    ///< whether some of those are meshes (Light::large)
     bool any_large_normals = false;   ///< whether some of those meshes have vertex normals
     bool any_analytic_lights = false;  ///< whether some are disks or cylinders (Light::disk, cylinder)
+    bool any_point_lights = false;     ///< whether some are point lights (Light::point)
+    bool any_lane_lights = false;      ///< whether some are of those kinds (Light::lanes)
     bool any_small_aside_lights = false;  ///< whether others are (aside_emitter_stage's)
     /// Whether the sampler is not `independent`: then draw_stage draws each vertex's numbers
     /// with SamplerColumns (its permutations and jitter, in lanes too), where it draws the
@@ -178,7 +182,7 @@ struct WavefrontScene {
     std::vector<float> cdf;  ///< Shape::tri_cdf, 9 per light, padded with 2 (no u reaches it)
     TriangleColumns triangles;
     /// The meshes of the lights of more than 8 triangles (Light::large), which
-    /// area_light_stage searches in lanes: per light its triangle count, its Shape::tri_cdf's
+    /// lane_emitter_stage searches in lanes: per light its triangle count, its Shape::tri_cdf's
     /// first entry in large_cdf and its first triangle in large_triangles; the other lights'
     /// entries point at a unit triangle, entry 0, whose CDF is large_cdf[0, 2). large_steps:
     /// the binary search's steps for the most triangles.
@@ -188,14 +192,17 @@ struct WavefrontScene {
     int large_steps = 0;
     /// A disk or cylinder light's centre, local_x, local_y, local_z and unflipped normal
     /// (Shape's; a cylinder's normal unused), as 15 columns of an entry per light (zeros for
-    /// the other lights): axis a of vector v at analytic_frame[3 v + a]; then its radius and
-    /// length at analytic_frame[15] and [16] (a cylinder's).
-    std::vector<float> analytic_frame[17];
+    /// the other lights, a point light's position as the centre): axis a of vector v at
+    /// light_frame[3 v + a]; then its radius and length at light_frame[15] and [16] (a
+    /// cylinder's).
+    std::vector<float> light_frame[17];
 };
 
 /// The flattened scene if render_fwd may trace `ctx`'s paths with trace_wavefront(), else
 /// nothing: always nothing in builds without AVX2, whose vector stage stays scalar. (The
-/// environment variable TORCH_RBPT_WAVEFRONT=0 turns it off, for comparisons.)
+/// environment variable TORCH_RBPT_WAVEFRONT=0 turns it off, for comparisons; `aside` samples
+/// every light that the vector stage does not sample itself with aside_emitter_stage, the
+/// path of a new emitter type, for tests.)
 std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &ctx,
                                               const IntegratorSettings &cfg, const Camera &camera);
 

@@ -1014,20 +1014,9 @@ def dome_obj(rings: int, segments: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-@pytest.mark.parametrize("lights", ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified",
-                                    "two disks, one flipped, a dome and a point light",
-                                    "two cylinders, one flipped, and a disk", "a cylinder alone"])
-def test33_mesh_lights_of_many_triangles_disks_and_cylinders_sampled_in_lanes(tmp_path, monkeypatch, lights):
-    # Area lights on meshes of more than 8 triangles, on disks and on cylinders are sampled
-    # in SIMD lanes (area_light_stage: each lane's triangle found by a binary search of its
-    # light's CDF, its vertices gathered; a disk's or cylinder's point placed by its frame in
-    # double) rather than by emitter_sample() one lane at a time: a dome of 84 triangles of
-    # unequal areas with vertex normals, a strip of 40 seen from its back (flip_normals),
-    # disks seen from their front and from their back (flip_normals), a slanted cylinder
-    # and a flipped one lighting the floor through its open end, beside small mesh lights
-    # and a point light (aside_emitter_stage's), with the stratified sampler. The image is
-    # path_li's bit for bit, and the lights' radiances are differentiated in lanes with the
-    # tape's gradients.
+def lights_scene(tmp_path, lights):
+    """The room with the lights that `lights` names (test33, test34), and the keys of their
+    radiances and intensities."""
     (tmp_path / "dome.obj").write_text(dome_obj(4, 12))
     (tmp_path / "long.obj").write_text("".join(f"v {-1.0 + 0.1 * i} 0.25 {0.7 + 0.02 * (i % 3)}\nv {-1.0 + 0.1 * i} 0.25 0.9\n"
                                                for i in range(21)) +
@@ -1035,7 +1024,7 @@ def test33_mesh_lights_of_many_triangles_disks_and_cylinders_sampled_in_lanes(tm
                                                for i in range(20)))
     d = room_dict(tmp_path, {"max_depth": 5, "rr_depth": 2})
     keys = []
-    if lights.startswith("dome"):
+    if "dome" in lights:
         d["dome"] = {"type": "obj", "filename": str(tmp_path / "dome.obj"),
                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [12.0, 9.0, 6.0]}}}
         keys.append("dome.emitter.radiance.value")
@@ -1065,10 +1054,51 @@ def test33_mesh_lights_of_many_triangles_disks_and_cylinders_sampled_in_lanes(tm
         keys += ["disk.emitter.radiance.value", "under.emitter.radiance.value"]
     if "point light" in lights:
         d["lamp"] = LAMP
+        keys.append("lamp.intensity.value")
+    if lights == "two point lights alone":
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+        d["lamp"] = LAMP
+        d["bulb"] = {"type": "point", "position": [-0.4, 1.1, 0.6], "intensity": 2.0}
+        keys += ["lamp.intensity.value", "bulb.intensity.value"]
     if "stratified" in lights:
         d["sensor"]["sampler"] = {"type": "stratified"}
-    scene = tr.load_dict(d)
+    return tr.load_dict(d), keys
+
+
+LIGHTS = ["dome alone", "dome, strip of 40 and a point light", "strip of 40, stratified",
+          "two disks, one flipped, a dome and a point light", "two cylinders, one flipped, a disk and a dome",
+          "a cylinder alone", "two point lights alone"]
+
+
+@pytest.mark.parametrize("lights", LIGHTS)
+def test33_lights_sampled_in_lanes(tmp_path, monkeypatch, lights):
+    # Area lights on meshes of more than 8 triangles, on disks and on cylinders, and point
+    # lights are sampled in SIMD lanes (lane_emitter_stage: each lane's triangle found by a
+    # binary search of its light's CDF, its vertices gathered; a disk's or cylinder's point
+    # placed by its frame in double) rather than by emitter_sample() one lane at a time: a
+    # dome of 84 triangles of unequal areas with vertex normals, a strip of 40 seen from its
+    # back (flip_normals), disks seen from their front and from their back (flip_normals), a
+    # slanted cylinder and a flipped one lighting the floor through its open end, point
+    # lights, beside small mesh lights (the vector stage's own), with the stratified sampler.
+    # The image is path_li's bit for bit, and the lights' radiances are differentiated in
+    # lanes with the tape's gradients.
+    scene, keys = lights_scene(tmp_path, lights)
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=5)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
+    assert_lanes_give_the_tapes_gradients(scene, keys + ["floor.bsdf.reflectance.value"], monkeypatch, spp=9)
+
+
+@pytest.mark.parametrize("lights", [LIGHTS[1], LIGHTS[3], LIGHTS[4]])
+def test34_lights_sampled_aside_as_a_new_emitter_type(tmp_path, monkeypatch, lights):
+    # A new emitter type runs in the wavefront with emitters.h's code alone: the lanes whose
+    # light the vector stage does not sample get emitter_sample()'s sample one lane at a
+    # time (aside_emitter_stage). Every light of test33 taken that way
+    # (TORCH_RBPT_WAVEFRONT=aside) gives path_li's image bit for bit, and the tape's
+    # gradients in lanes.
+    monkeypatch.setenv("TORCH_RBPT_WAVEFRONT", "aside")
+    scene, keys = lights_scene(tmp_path, lights)
+    wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=5)
+    assert torch.equal(wavefront, scalar)
     assert_lanes_give_the_tapes_gradients(scene, keys + ["floor.bsdf.reflectance.value"], monkeypatch, spp=9)
