@@ -1843,41 +1843,51 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
         }
         r = {pad[0], pad[1], pad[2], pad[3], pad[4], pad[5], pad[6], pad[7]};
     }
-    // Each ray's constants of the watertight test (RayPrecomp, RayPrecompPack), and whether
-    // it must be traced by intersect() (`retrace`: 1 or 0).
+    // Each ray's constants of the watertight test (RayPrecomp, RayPrecompPack; none without
+    // triangles), and whether it must be traced by intersect() (`retrace`: 1 or 0).
     alignas(64) int kx[MaxColumns], ky[MaxColumns], kz[MaxColumns];
     alignas(64) float ox[MaxColumns], oy[MaxColumns], oz[MaxColumns], sx[MaxColumns], sy[MaxColumns],
         sz[MaxColumns], best_t[MaxColumns], best_u[MaxColumns], best_v[MaxColumns];
     alignas(64) uint32_t best_prim[MaxColumns];
     alignas(64) float best_inv_det[MaxColumns];  // (deferred tests only)
+    const bool triangles = !flat_triangles_.empty();
+    auto set_up = [&](auto with_triangles) {
 #pragma GCC ivdep
-    for (int k = 0; k < n; ++k) {
-        float dx = r.dx[k], dy = r.dy[k], dz = r.dz[k];
-        float ax = std::abs(dx), ay = std::abs(dy), az = std::abs(dz);
-        int z = (ax > ay) ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2);
-        int x = z == 2 ? 0 : z + 1;
-        int y = x == 2 ? 0 : x + 1;
-        float dkz = pick(z, dx, dy, dz);
-        int swap = dkz < 0.f;
-        int x2 = swap ? y : x, y2 = swap ? x : y;
-        float dkx = pick(x2, dx, dy, dz), dky = pick(y2, dx, dy, dz);
-        kx[k] = x2, ky[k] = y2, kz[k] = z;
-        sx[k] = dkx / dkz, sy[k] = dky / dkz, sz[k] = 1.f / dkz;
-        ox[k] = pick(x2, r.ox[k], r.oy[k], r.oz[k]);
-        oy[k] = pick(y2, r.ox[k], r.oy[k], r.oz[k]);
-        oz[k] = pick(z, r.ox[k], r.oy[k], r.oz[k]);
-        // (A sum of magnitudes is finite exactly when each is.)
-        float sum = ((std::abs(r.ox[k]) + std::abs(r.oy[k])) + std::abs(r.oz[k])) + ((ax + ay) + az);
-        float finite = sum < Infinity ? 1.f : 0.f;
-        finite = dkz != 0.f ? finite : 0.f;
-        retrace[k] = finite != 0.f ? 0.f : 1.f;
-        best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u, best_inv_det[k] = 0.f;
-    }
+        for (int k = 0; k < n; ++k) {
+            float dx = r.dx[k], dy = r.dy[k], dz = r.dz[k];
+            float ax = std::abs(dx), ay = std::abs(dy), az = std::abs(dz);
+            int z = (ax > ay) ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2);
+            float dkz = pick(z, dx, dy, dz);
+            if constexpr (decltype(with_triangles)::value) {
+                int x = z == 2 ? 0 : z + 1;
+                int y = x == 2 ? 0 : x + 1;
+                int swap = dkz < 0.f;
+                int x2 = swap ? y : x, y2 = swap ? x : y;
+                float dkx = pick(x2, dx, dy, dz), dky = pick(y2, dx, dy, dz);
+                kx[k] = x2, ky[k] = y2, kz[k] = z;
+                sx[k] = dkx / dkz, sy[k] = dky / dkz, sz[k] = 1.f / dkz;
+                ox[k] = pick(x2, r.ox[k], r.oy[k], r.oz[k]);
+                oy[k] = pick(y2, r.ox[k], r.oy[k], r.oz[k]);
+                oz[k] = pick(z, r.ox[k], r.oy[k], r.oz[k]);
+            }
+            // (A sum of magnitudes is finite exactly when each is.)
+            float sum = ((std::abs(r.ox[k]) + std::abs(r.oy[k])) + std::abs(r.oz[k])) + ((ax + ay) + az);
+            float finite = sum < Infinity ? 1.f : 0.f;
+            finite = dkz != 0.f ? finite : 0.f;
+            retrace[k] = finite != 0.f ? 0.f : 1.f;
+            best_t[k] = Infinity, best_u[k] = 0.f, best_v[k] = 0.f, best_prim[k] = ~0u, best_inv_det[k] = 0.f;
+        }
+    };
+    if (triangles) set_up(std::true_type{});
+    else set_up(std::false_type{});
     // Each triangle against every ray, G triangles per pass over the rays (their constants
-    // and best hits loaded and stored once per pass).
+    // and best hits loaded and stored once per pass). (The inverse directions: the
+    // triangles' and the disks' and cylinders' box tests.)
     alignas(64) float inv_x[MaxColumns], inv_y[MaxColumns], inv_z[MaxColumns];
+    if (triangles || !flat_others_.empty()) {
 #pragma GCC ivdep
-    for (int k = 0; k < n; ++k) inv_x[k] = 1.f / r.dx[k], inv_y[k] = 1.f / r.dy[k], inv_z[k] = 1.f / r.dz[k];
+        for (int k = 0; k < n; ++k) inv_x[k] = 1.f / r.dx[k], inv_y[k] = 1.f / r.dy[k], inv_z[k] = 1.f / r.dz[k];
+    }
     FlatRays rays{r.tmin, r.tmax, kx, ky, kz, ox, oy, oz, sx, sy, sz, retrace, best_t, best_u, best_v, best_prim,
                   best_inv_det, r.ox, r.oy, r.oz, inv_x, inv_y, inv_z, 0.5f * flat_area_,
                   r.dx, r.dy, r.dz};
