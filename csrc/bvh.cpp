@@ -1823,6 +1823,62 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
     }
 }
 
+/// intersect_disk_or_cylinder() for rays list[0, m) of `r` and the disk (Disk) or cylinder
+/// `s`, lane by lane (its operations in double, its tests as selects of float flags, 1 or 0:
+/// GCC does not vectorise && of them): hit[j] 1 or 0, and t[j], u[j], v[j].
+template <bool Disk>
+void BVH::flat_other(const Shape &s, const RayColumns &r, const int *list, int m, float *t_out, float *u_out,
+                     float *v_out, float *hit_out) {
+    const float *q_ox = r.ox, *q_oy = r.oy, *q_oz = r.oz, *q_dx = r.dx, *q_dy = r.dy, *q_dz = r.dz;
+    const float *q_tmin = r.tmin, *q_tmax = r.tmax;
+    double M[3][4];  // (a local copy: the loop's stores cannot alias it)
+    std::copy(&s.to_object[0][0], &s.to_object[0][0] + 12, &M[0][0]);
+    const double radius = s.radius, length = s.length;
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+        const int k = list[j];
+        const double o[3] = {q_ox[k], q_oy[k], q_oz[k]};
+        const float dx = q_dx[k], dy = q_dy[k], dz = q_dz[k];
+        double lo[3], ld[3];
+        for (int i = 0; i < 3; ++i) {
+            lo[i] = M[i][0] * o[0] + M[i][1] * o[1] + M[i][2] * o[2] + M[i][3];
+            ld[i] = M[i][0] * dx + M[i][1] * dy + M[i][2] * dz;
+        }
+        const double tmin = q_tmin[k], tmax = q_tmax[k];
+        if constexpr (Disk) {
+            const double t = -lo[2] / ld[2];
+            const double x = lo[0] + t * ld[0], y = lo[1] + t * ld[1];
+            float hit = t > tmin ? 1.f : 0.f;
+            hit = t < tmax ? hit : 0.f;
+            hit = x * x + y * y > 1.0 ? 0.f : hit;
+            hit_out[j] = ld[2] == 0.0 ? 0.f : hit;
+            t_out[j] = float(t), u_out[j] = float(x), v_out[j] = float(y);
+        } else {
+            // As Mitsuba: the nearest root within the length, else the farther one.
+            const double A = ld[0] * ld[0] + ld[1] * ld[1];
+            const double B = 2.0 * (ld[0] * lo[0] + ld[1] * lo[1]);
+            const double C = lo[0] * lo[0] + lo[1] * lo[1] - radius * radius;
+            const double disc = B * B - 4.0 * A * C;
+            const double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+            const double r0 = q / A, r1 = q != 0.0 ? C / q : r0;
+            const double t0 = r0 > r1 ? r1 : r0, t1 = r0 > r1 ? r0 : r1;
+            const double z0 = lo[2] + t0 * ld[2], z1 = lo[2] + t1 * ld[2];
+            float ok0 = t0 > tmin ? 1.f : 0.f;
+            ok0 = t0 < tmax ? ok0 : 0.f;
+            ok0 = z0 >= 0.0 ? ok0 : 0.f;
+            ok0 = z0 <= length ? ok0 : 0.f;
+            float ok1 = t1 > tmin ? 1.f : 0.f;
+            ok1 = t1 < tmax ? ok1 : 0.f;
+            ok1 = z1 >= 0.0 ? ok1 : 0.f;
+            ok1 = z1 <= length ? ok1 : 0.f;
+            float hit = ok0 != 0.f ? 1.f : ok1;
+            hit = disc < 0.0 ? 0.f : hit;
+            hit_out[j] = A == 0.0 ? 0.f : hit;
+            t_out[j] = ok0 != 0.f ? float(t0) : float(t1), u_out[j] = 0.f, v_out[j] = 0.f;
+        }
+    }
+}
+
 /// The lanes' part of intersect_columns(): the nearest hits of rays[0, n) among the flat
 /// triangles and spheres into `hits`, and retrace[k] 1 where intersect() must decide.
 void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hits, float *retrace, bool shadow) const {
@@ -1970,8 +2026,8 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
         }
     }
     // Each disk or cylinder against the rays that enter its (widened) box before their
-    // nearest hit so far, listed in lanes and tested one at a time with the traversal's own
-    // test (intersect_disk_or_cylinder, in double), their hits kept as the spheres' are.
+    // nearest hit so far, listed and tested in lanes (flat_other: the traversal's own test,
+    // intersect_disk_or_cylinder, in double), their hits kept as the spheres' are.
     for (const FlatOther &other : flat_others_) {
         const Shape &s = geometry_->analytic_shape(other.prim);
 #pragma GCC ivdep
@@ -1980,12 +2036,16 @@ void BVH::flat_columns(const RayColumns &rays_in, int n_in, const HitColumns &hi
             near[k] = enters_box(other.lo, other.hi, o, inv_d, r.tmin[k], std::min(r.tmax[k], best_t[k]), BoxWiden) ? 1 : 0;
         }
         const int m = simd::select_indices(near, n_in, 1, near_list);
+        alignas(64) float other_u[MaxColumns], other_v[MaxColumns];
+        const int padded = simd::pad_indices(near_list, m);
+        if (s.kind == ShapeKind::Disk) flat_other<true>(s, r, near_list, padded, sphere_t, other_u, other_v, sphere_hit);
+        else flat_other<false>(s, r, near_list, padded, sphere_t, other_u, other_v, sphere_hit);
         for (int j = 0; j < m; ++j) {
+            if (sphere_hit[j] == 0.f) continue;
             const int k = near_list[j];
-            const AnalyticHit h = intersect_disk_or_cylinder(rays_in.ray(k), s, r.tmin[k], r.tmax[k]);
-            if (!h.hit) continue;
-            if (h.t == best_t[k]) retrace[k] = 1.f;
-            if (h.t < best_t[k]) best_t[k] = h.t, best_u[k] = h.u, best_v[k] = h.v, best_prim[k] = other.prim;
+            const float t = sphere_t[j];
+            if (t == best_t[k]) retrace[k] = 1.f;
+            if (t < best_t[k]) best_t[k] = t, best_u[k] = other_u[j], best_v[k] = other_v[j], best_prim[k] = other.prim;
         }
     }
     // The hits.

@@ -280,6 +280,9 @@ private:
     void flat_rounding_check(const FlatRays &rays, int n) const;
     static void flat_sphere(const Vec3 &center, float radius, const RayColumns &r, const int *list, int m,
                             float *t, float *hit);
+    template <bool Disk>
+    static void flat_other(const Shape &s, const RayColumns &r, const int *list, int m, float *t, float *u, float *v,
+                           float *hit);
     std::vector<uint32_t> flat_spheres_;
     /// The flat tree's disks and cylinders, each with its own box (analytic_bounds()).
     struct FlatOther {
