@@ -1030,11 +1030,12 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
 }
 
 /// The emitter samples of the lanes whose emitter the vector stage does not sample itself
-/// (Light::aside): emitter_sample() for each, one lane at a time, from draw_stage's numbers
-/// (with which the vector stage selects the same emitter), into the a* columns, which the
-/// vector stage takes for those lanes. So a new
-/// emitter type needs only emitters.h's code to run in the wavefront: the BSDF towards its
-/// sample, the MIS weight, the shadow ray and the BSDF sample stay in lanes.
+/// (Light::aside) and lane_emitter_stage does not either (Light::lanes 0: no current type,
+/// or every one with TORCH_RBPT_WAVEFRONT=aside): emitter_sample() for each, one lane at a
+/// time, from draw_stage's numbers (with which the vector stage selects the same emitter),
+/// into the a* columns, which the vector stage takes for those lanes. So a new emitter type
+/// needs only emitters.h's code to run in the wavefront: the BSDF towards its sample, the
+/// MIS weight, the shadow ray and the BSDF sample stay in lanes.
 void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const RenderContext<RGB<float>> &ctx) {
     const int n_lights = int(ws.lights.size());
     for (int k = 0; k < n; ++k) {
