@@ -1046,7 +1046,7 @@ void aside_emitter_stage(Batch &b, int n, const WavefrontScene &ws, const Render
         std::optional<EmitterSample<RGB<float>>> es;
         const WavefrontScene::Light &l = ws.lights[size_t(index)];
         if (l.lanes) continue;  // (lane_emitter_stage's)
-        if (b.shade[k] && m.diffuse + m.rough != 0.f && ws.lights[size_t(index)].aside != 0.f)
+        if (b.shade[k] && m.diffuse + m.rough != 0.f && l.aside != 0.f)
             es = emitter_sample<RGB<float>>(ctx, Vec3{b.px[k], b.py[k], b.pz[k]}, u);
         const EmitterSample<RGB<float>> none;
         const EmitterSample<RGB<float>> &e = es ? *es : none;
