@@ -218,7 +218,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
             light.aside = 1.f;
             const Shape *mesh = e.type == EmitterType::Area ? &scene.geometry.shapes[e.shape] : nullptr;
             if (!lane_emitters) {
-                ws.any_small_aside_lights = true;
+                ws.any_aside_stage_lights = true;
             } else if (mesh && mesh->kind == ShapeKind::Mesh && mesh->tri_count > 8) {
                 ws.any_large_lights = true;
                 light.large = 1;
@@ -236,7 +236,7 @@ std::optional<WavefrontScene> wavefront_scene(const RenderContext<RGB<float>> &c
                 ws.any_point_lights = true;
                 light.point = 1;
             } else {
-                ws.any_small_aside_lights = true;
+                ws.any_aside_stage_lights = true;
             }
             ws.lights.push_back(light);
             unit_triangle();
@@ -2522,10 +2522,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         if (ggx.count > 0) (defer ? ggx_sample_stage<true> : ggx_sample_stage<false>)(b, ggx, ws);
         beckmann.count = ws.any_beckmann ? list_rough_lanes(b, n, ws, 1.f, beckmann.lanes) : 0;
         if (beckmann.count > 0) (defer ? beckmann_sample_stage<true> : beckmann_sample_stage<false>)(b, ws, beckmann);
-        // (Without emitter sampling the vector stage reads no aside sample; the area lights'
-        // stage writes every lane's, the other stage then those of its lights.)
+        // (Without emitter sampling the vector stage reads no aside sample; lane_emitter_stage
+        // writes every lane's, aside_emitter_stage then those of its lights.)
         if (ws.any_lane_lights && cfg.emitter_sampling) lane_emitter_stage_for(ws)(b, n, ws);
-        if (ws.any_small_aside_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
+        if (ws.any_aside_stage_lights && cfg.emitter_sampling) aside_emitter_stage(b, n, ws, ctx);
         vertex_stage_for(ws)(b, n, ws, cfg);
         const float bsdf_mis = cfg.bsdf_sampling ? 1.f : 0.f;
         if (ggx.count > 0) rough_emitter_stage<Microfacet::GGX>(b, ggx, ws, bsdf_mis);

@@ -157,7 +157,7 @@ struct WavefrontScene {
     bool any_analytic_lights = false;  ///< whether some are disks or cylinders (Light::disk, cylinder)
     bool any_point_lights = false;     ///< whether some are point lights (Light::point)
     bool any_lane_lights = false;      ///< whether some are of those kinds (Light::lanes)
-    bool any_small_aside_lights = false;  ///< whether others are (aside_emitter_stage's)
+    bool any_aside_stage_lights = false;  ///< whether some aside lights are none of those (aside_emitter_stage's)
     /// Whether the sampler is not `independent`: then draw_stage draws each vertex's numbers
     /// with SamplerColumns (its permutations and jitter, in lanes too), where it draws the
     /// independent sampler's from each lane's stream; the other stages read them from
