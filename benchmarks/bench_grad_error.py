@@ -30,6 +30,7 @@ Kinds (scene, keys):
   texture       benchmarks/scenes/grad_texture.xml, tex.reflectance.data (32 x 32 EXR texture,
                 written into the cache at first run)
   roughness     benchmarks/scenes/grad_rough.xml, metal.alpha.value (GGX roughconductor)
+  beckmann      the same, the conductor Beckmann's (Mitsuba's default distribution)
   roughplastic  benchmarks/scenes/grad_rough.xml, plastic.alpha (GGX roughplastic); errors
                 against our reference: Mitsuba's prb gradient of this parameter disagrees with
                 finite differences of Mitsuba's own images (see kinds())
@@ -109,6 +110,8 @@ def kinds(cache: Path) -> dict:
         "texture": dict(scene=SCENES / "grad_texture.xml", defaults={"texture": str(tex)},
                         keys=["tex.reflectance.data"]),
         "roughness": dict(scene=SCENES / "grad_rough.xml", defaults={}, keys=["metal.alpha.value"]),
+        "beckmann": dict(scene=SCENES / "grad_rough.xml", defaults={"metal_distribution": "beckmann"},
+                         keys=["metal.alpha.value"]),
         # Mitsuba 3.9.1's prb gradient of a roughplastic's alpha is about 3.3x too small here
         # (-0.00114 where central finite differences of Mitsuba's own images, 1024 spp, give
         # -0.00372 and ours -0.00380): errors of this kind are measured against our reference.
@@ -322,7 +325,7 @@ def main(argv=None) -> dict:
                          "was 3.59 where 24 seeds give 1.43)")
     ap.add_argument("--ref-spp", type=int, default=4096)
     ap.add_argument("--ref-chunk", type=int, default=256, help="spp of each reference run")
-    ap.add_argument("--kinds", nargs="+", default=None, help="subset of: reflectance texture roughness roughplastic")
+    ap.add_argument("--kinds", nargs="+", default=None, help="subset of: reflectance texture roughness beckmann roughplastic")
     ap.add_argument("--quick", action="store_true", help="res 16, spp 2 8, 2 seeds, ref 64 spp")
     ap.add_argument("--no-mitsuba", action="store_true", help="ours only")
     mitsuba_ref.add_isa_argument(ap)

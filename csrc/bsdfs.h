@@ -393,6 +393,65 @@ struct RoughPlasticBSDF {
         bs.weight = e.value / real_t<S>(bs.pdf);
         return bs;
     }
+    /// d log f_c / d rho_c at (wi, wo) for each channel c, rho the diffuse reflectance and ks
+    /// the specular reflectance (as looked up at the vertex), alpha the roughness: rho is a
+    /// factor of one of f's two terms, f = ks spec + g(rho) base with g(rho) = rho / (1 - R_int)
+    /// (rho / (1 - rho R_int) when nonlinear), so d log f / d rho = g'(rho) base / f (render_bwd's
+    /// roughplastic reflectances in lanes). eval_pdf's operations in float; zero where base is
+    /// (wi or wo below the surface), infinite where f_c is zero and base is not (the path's
+    /// later radiance in c, zero, cannot give the derivative).
+    static RGB<float> dlog_dreflectance(const BSDF &b, const BSDFState &state, float alpha, const Vec3 &wi,
+                                        const Vec3 &wo, const RGB<float> &rho, const RGB<float> &ks) {
+        if (!(wi.z > 0.f && wo.z > 0.f)) return RGB<float>(0.f);
+        const RoughPlasticTables &tab = *state.tables;
+        const Vec3 h = normalize(wi + wo);
+        float cos_t, eta_it, eta_ti;
+        const float F = fresnel_dielectric(dot(wi, h), b.eta, &cos_t, &eta_it, &eta_ti);
+        const float spec = F * (microfacet_D(b.distribution, alpha, h) * smith_G1(b.distribution, alpha, wi, h) /
+                                (4.f * wi.z)) * smith_G1(b.distribution, alpha, wo, h);
+        const float base = tab.transmittance(wi.z) * tab.transmittance(wo.z) * (InvPi / (b.eta * b.eta) * wo.z);
+        const float r_int = tab.internal_reflectance;
+        RGB<float> dlog(0.f);
+        for (int c = 0; c < 3; ++c) {
+            const float g = b.nonlinear ? rho[c] / (1.f - rho[c] * r_int) : rho[c] / (1.f - r_int);
+            const float dg = b.nonlinear ? 1.f / ((1.f - rho[c] * r_int) * (1.f - rho[c] * r_int)) : 1.f / (1.f - r_int);
+            const float f = ks[c] * spec + g * base;
+            dlog[c] = base != 0.f ? dg * base / f : 0.f;
+        }
+        return dlog;
+    }
+    /// d log f_c / d alpha at (wi, wo) for each channel c (render_bwd's roughplastic roughness
+    /// in lanes): alpha enters f = ks F D G1(wi) G1(wo) / (4 cos_i) + g(rho, R_int) t(cos_i)
+    /// t(cos_o) cos_o / (pi eta^2) through D and the G1s (a dual number, as
+    /// RoughConductorBSDF::dlog_dalpha) and through the tables, t and R_int, whose
+    /// derivatives `state.dtables` holds (as eval_pdf's first order). Zero where f and its
+    /// derivative are, infinite where only f is.
+    static RGB<float> dlog_dalpha(const BSDF &b, const BSDFState &state, float alpha, const Vec3 &wi,
+                                  const Vec3 &wo, const RGB<float> &rho, const RGB<float> &ks) {
+        if (!(wi.z > 0.f && wo.z > 0.f)) return RGB<float>(0.f);
+        const RoughPlasticTables &tab = *state.tables, &dtab = *state.dtables;
+        const Vec3 h = normalize(wi + wo);
+        float cos_t, eta_it, eta_ti;
+        const float F = fresnel_dielectric(dot(wi, h), b.eta, &cos_t, &eta_it, &eta_ti);
+        const Dual<float> a(RGB<float>(alpha), RGB<float>(1.f));
+        const Dual<float> s = microfacet_D(b.distribution, a, h) * smith_G1(b.distribution, a, wi, h) *
+                              smith_G1(b.distribution, a, wo, h);
+        const float spec = F * s.v[0] / (4.f * wi.z), dspec = F * s.d[0] / (4.f * wi.z);
+        const float k = InvPi / (b.eta * b.eta) * wo.z;
+        const float t_i = tab.transmittance(wi.z), t_o = tab.transmittance(wo.z);
+        const float dt = dtab.transmittance(wi.z) * t_o + t_i * dtab.transmittance(wo.z);
+        const float r_int = tab.internal_reflectance, dr_int = dtab.internal_reflectance;
+        RGB<float> dlog(0.f);
+        for (int c = 0; c < 3; ++c) {
+            const float den = b.nonlinear ? 1.f - rho[c] * r_int : 1.f - r_int;
+            const float g = rho[c] / den;
+            const float dg = (b.nonlinear ? rho[c] * rho[c] : rho[c]) / (den * den) * dr_int;  // d g / d R_int dR_int
+            const float f = ks[c] * spec + g * (t_i * t_o) * k;
+            const float df = ks[c] * dspec + (dg * (t_i * t_o) + g * dt) * k;
+            dlog[c] = df != 0.f ? df / f : 0.f;
+        }
+        return dlog;
+    }
 };
 
 // ---- Dispatch on the BSDF type (static: one switch, no virtual calls) --------------------

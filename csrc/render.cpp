@@ -887,9 +887,10 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
     int n_tiles = tiles.nx * tiles.ny;
     std::vector<std::vector<double>> buffers(n_workers);
     // The backward pass in lanes (WavefrontVertex) for float renders in the wavefront's scenes
-    // when no differentiated parameter is a roughness other than a GGX conductor's (the lane
-    // whose roughness derivative WavefrontVertex takes) or an input of a BSDF whose lane is
-    // not linear in its inputs.
+    // when no differentiated parameter is a roughness other than a rough conductor's (GGX or
+    // Beckmann) or a roughplastic's (the lanes whose roughness derivatives WavefrontVertex
+    // takes), or an input of a BSDF whose lane is not linear in its inputs other than a
+    // roughplastic's diffuse reflectance (a Term record).
     std::optional<WavefrontScene> wavefront;
     std::vector<char> watched(n_params, 0);
     // The values the lanes read: a differentiated radiance's zero channels taken as 1
@@ -921,14 +922,16 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
             const BSDF &b = scene.bsdfs[i];
             const auto lane = WavefrontScene::Lane(wavefront->materials[i].lane);
-            const bool ggx_conductor = lane == WavefrontScene::RoughMirror && wavefront->materials[i].beckmann == 0.f;
-            if (b.alpha >= 0 && watched[size_t(b.alpha)] && !ggx_conductor) {
+            if (b.alpha >= 0 && watched[size_t(b.alpha)] && lane != WavefrontScene::RoughMirror &&
+                lane != WavefrontScene::RoughPlastic) {
                 wavefront.reset();
                 break;
             }
             if (linear_in_inputs(lane)) continue;
-            for (const TextureRef *r : {&b.reflectance, &b.specular_reflectance, &b.specular_transmittance})
-                if (reads_watched(scene, *r, watched)) wavefront.reset();
+            // (A roughplastic's diffuse reflectance: a Term record.)
+            const TextureRef *const reflectance = lane == WavefrontScene::RoughPlastic ? nullptr : &b.reflectance;
+            for (const TextureRef *r : {reflectance, &b.specular_reflectance, &b.specular_transmittance})
+                if (r && reads_watched(scene, *r, watched)) wavefront.reset();
         }
         if (wavefront) exclude_watched_inputs(*wavefront, scene, watched.data());
     }
@@ -962,7 +965,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // In lanes: batches of samples traced by the float wavefront, each vertex of a
         // differentiated reflectance or transmittance (linear_in_inputs) depositing
         // dL . (L - L_before) / rho into what it read, each emission of a differentiated
-        // radiance dL . C / Le, each GGX conductor's vertex of a differentiated roughness
+        // radiance dL . C / Le, each rough conductor's vertex of a differentiated roughness
+        // and each roughplastic's of a differentiated roughness or diffuse reflectance (per
+        // channel)
         // dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)); the tape re-traces the
         // paths that read those parameters otherwise, or where a dielectric's rho has a zero
         // channel (the quotient fails; the other inputs' zero channels are taken as 1 in the
@@ -985,6 +990,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 lanes_ctx.emplace(scene, lane_values);
                 record.unit_radiance = unit_radiance;
                 lanes_ctx->params.log = &log;
+                // The roughplastic tables' derivatives, where its roughness is differentiated
+                // (its Term records read them; a float lookup adds them times 0).
+                for (size_t i = 0; i < scene.bsdfs.size(); ++i) lanes_ctx->bsdf_state[i].dtables = ctx.bsdf_state[i].dtables;
             }
         }
         auto flush = [&] {
@@ -1001,7 +1009,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 for (size_t i = 0; i < record.vertices.size(); ++i) {
                     const WavefrontVertex &v = record.vertices[i];
                     for (int c = 0; c < 3; ++c) {
-                        if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.value[c] != 0.f) continue;
+                        if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.kind == WavefrontVertex::Term ||
+                            v.value[c] != 0.f)
+                            continue;
                         if (!v.unit) {
                             record.tape[size_t(v.seq)] = 1;
                             continue;
@@ -1076,9 +1086,10 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                                 }
                                 if (first >= 0) end = before(size_t(first));
                             }
-                            if (v.kind == WavefrontVertex::Roughness) {  // the emitter sample's C_e, then the rest
+                            if (v.kind == WavefrontVertex::Roughness || v.kind == WavefrontVertex::Term) {
+                                // The emitter sample's C_e, then the rest.
                                 double C = double(v.value[c]), rest = end - before(i) - C;
-                                g[c] = double(dL[c]) * (C * double(v.dlog[0]) + rest * double(v.dlog[1]));
+                                g[c] = double(dL[c]) * (C * double(v.dlog[0][c]) + rest * double(v.dlog[1][c]));
                                 continue;
                             }
                             if (v.kind == WavefrontVertex::Input) {

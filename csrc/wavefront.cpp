@@ -329,6 +329,12 @@ static_assert(SamplerColumns::Capacity >= B, "a batch's samplers fit SamplerColu
 /// and the cbox 3 of 4, veach-mis 2 of 4.)
 constexpr int Column = B + 16;
 
+/// The largest d log f_c / d rho_c of a roughplastic's Term record (WavefrontVertex) that the
+/// lanes deposit; a sample with a larger one takes the tape. Its deposit multiplies the
+/// path's later radiance L_c - L_before,c by it, a difference of float sums whose rounding it
+/// magnifies as much (as a diffuse input's quotient by rho, 1 / rho, does).
+constexpr float MaxTermDlog = 1e4f;
+
 /// The batch's paths, one column per quantity; live paths are packed into [0, n).
 /// (Aligned to cache lines: so is each column, of Column entries, and so are the vector
 /// loads.)
@@ -370,7 +376,10 @@ struct alignas(64) Batch {
     int light[Column];  ///< the emitter sampled
     float refracts[Column];  ///< 1 where the BSDF sample refracted (a dielectric's transmission), else 0
     int record_reflect[Column], record_refract[Column];  ///< a dielectric's WavefrontVertex entries, or -1
-    int record_rough[Column];  ///< a differentiated roughness's WavefrontVertex entry, or -1
+    /// The WavefrontVertex entries whose C_e the shadow stage fills in, or -1: a rough
+    /// conductor's differentiated roughness, or a roughplastic's diffuse reflectance; and a
+    /// roughplastic's roughness.
+    int record_rough[Column], record_alpha[Column];
     // The rough BSDFs' directions, in the frame the vertex stage evaluates them in (twosided's
     // flip applied): towards the emitter sample (the vertex stage's), and the BSDF sample
     // (rough_samples()') with its density and its weight value / density.
@@ -1974,7 +1983,7 @@ void quick_shade_stage(Batch &b, int n, const WavefrontScene &ws, WavefrontRecor
         const int m = material[p], q = quick[p];
         b.mat[k] = m;
         b.shade[k] = b.prim[k] < n_prims && b.done[k] != 0 ? q : 0;
-        b.record_rough[k] = b.record_reflect[k] = b.record_refract[k] = -1;
+        b.record_rough[k] = b.record_alpha[k] = b.record_reflect[k] = b.record_refract[k] = -1;
 #if RBPT_GATHER_WORDS
         b.ar[k] = word_of<float>(mats, m, A), b.ag[k] = word_of<float>(mats, m, A + 1), b.ab[k] = word_of<float>(mats, m, A + 2);
         b.tr[k] = word_of<float>(mats, m, T), b.tg[k] = word_of<float>(mats, m, T + 1), b.tb[k] = word_of<float>(mats, m, T + 2);
@@ -2021,6 +2030,7 @@ void sky_stage(Batch &b, int n, bool sky, const Color3f &Le, float em_pdf, bool 
         b.shade[k] = end != 0 ? 0 : b.shade[k];
         b.mat[k] = end != 0 ? 0 : b.mat[k];
         b.record_rough[k] = end != 0 ? -1 : b.record_rough[k];
+        b.record_alpha[k] = end != 0 ? -1 : b.record_alpha[k];
         ended[k] = end;
     }
 }
@@ -2418,11 +2428,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 // A path at its last vertex (among others that go on): its emission, and the
                 // vector stage ends it (shade 0).
                 last_vertex(k);
-                b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
+                b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = b.record_alpha[k] = -1;
                 continue;
             }
             if (quick && b.shade[k]) continue;
-            b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = -1;
+            b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = b.record_alpha[k] = -1;
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {
                 // The ray escaped: the environment's emission (if the scene has one) ends it.
@@ -2483,7 +2493,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             const int reads_a = log ? log->count : 0;
             Color3f a = lookup(*in.a);
             b.ar[k] = a.v[0], b.ag[k] = a.v[1], b.ab[k] = a.v[2];
-            // (The diffuse reflectance, the mirror's and GGX conductor's specular reflectance
+            // (The diffuse reflectance, the mirror's and rough conductor's specular reflectance
             // and, on the branch it samples, the dielectric's specular reflectance or
             // transmittance are one factor of all the path gathers after the vertex.)
             const bool glass = lane == WavefrontScene::Glass;
@@ -2497,6 +2507,13 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             };
             b.record_reflect[k] = keep(reads_a, a);
             if (b.record_reflect[k] >= 0) unit_zero_inputs(b, k, record->vertices.back(), lane);
+            if (log && lane == WavefrontScene::RoughPlastic && log->count == reads_a + 1) {
+                // A roughplastic's differentiated diffuse reflectance: a Term record, whose C_e
+                // and dlog the shadow stage and the records after the vector stage fill in.
+                b.record_rough[k] = int(record->vertices.size());
+                record->vertices.push_back({b.seq[k], WavefrontVertex::Term, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, log->last});
+                ++expected;
+            }
             b.record_refract[k] = -1;
             if (in.t) {
                 const int reads_t = log ? log->count : 0;
@@ -2537,24 +2554,62 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 int unused = b.refracts[k] != 0.f ? b.record_reflect[k] : b.record_refract[k];
                 if (unused >= 0) record->vertices[size_t(unused)].seq = -1;
             }
-            // A GGX conductor's differentiated roughness: the vertex, with d log f / d alpha
-            // towards its emitter sample and its BSDF sample (the shadow stage adds the emitter
-            // sample's contribution to it).
+            // A rough conductor's differentiated roughness (GGX's or Beckmann's): the vertex,
+            // with d log f / d alpha towards its emitter sample and its BSDF sample (the shadow
+            // stage adds the emitter sample's contribution to it). A roughplastic's Term
+            // records: d log f / d rho (the shade stage's record) and d log f / d alpha towards
+            // the two.
             for (int k = 0; ws.any_rough && k < n; ++k) {
                 if (!b.shade[k]) continue;
                 const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
                 const BSDF &bsdf = scene.bsdfs[size_t(b.mat[k])];
-                if (m.lane != WavefrontScene::RoughMirror || !log->watched[bsdf.alpha]) continue;
+                const bool plastic = m.lane == WavefrontScene::RoughPlastic;
+                const bool rho_term = plastic && b.record_rough[k] >= 0, alpha_term = plastic && log->watched[bsdf.alpha];
+                if (!rho_term && !alpha_term && (m.lane != WavefrontScene::RoughMirror || !log->watched[bsdf.alpha])) continue;
                 Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
                 wi.z = m.twosided != 0 && wi.z < 0.f ? wi.z * -1.f : wi.z;  // (the vertex stage's flip)
+                const Vec3 wo_e{b.nwx[k], b.nwy[k], b.nwz[k]}, wo_s{b.swx[k], b.swy[k], b.swz[k]};
+                if (plastic) {
+                    const BSDFState &state = ctx.bsdf_state[size_t(b.mat[k])];
+                    const RGB<float> rho(b.ar[k], b.ag[k], b.ab[k]), ks(b.tr[k], b.tg[k], b.tb[k]);
+                    auto fill = [&](WavefrontVertex &v, auto dlog) {
+                        const RGB<float> e = b.shadow[k] ? dlog(wo_e) : RGB<float>(0.f);
+                        const RGB<float> s = b.alive[k] ? dlog(wo_s) : RGB<float>(0.f);
+                        for (int c = 0; c < 3; ++c) {
+                            v.dlog[0][c] = e[c], v.dlog[1][c] = s[c];
+                            // (Where rho_c is 0 or tiny and so is ks_c spec, as Beckmann's far
+                            // from its peak, dlog_c is huge and L_c - L_before,c holds little
+                            // but the float sums' rounding: the tape. Diffuse dlog is 1 / rho.)
+                            if (!(std::abs(e[c]) <= MaxTermDlog) || !(std::abs(s[c]) <= MaxTermDlog))
+                                record->tape[size_t(b.seq[k])] = 1;
+                        }
+                    };
+                    if (rho_term) {
+                        fill(record->vertices[size_t(b.record_rough[k])], [&](const Vec3 &wo) {
+                            return RoughPlasticBSDF::dlog_dreflectance(bsdf, state, m.alpha, wi, wo, rho, ks);
+                        });
+                    }
+                    if (alpha_term && !state.dtables) record->tape[size_t(b.seq[k])] = 1;  // (not reached)
+                    if (alpha_term && state.dtables) {
+                        // (render_bwd gives the lanes' context the tables' derivatives.)
+                        ParamRead read;
+                        read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
+                        WavefrontVertex v{b.seq[k], WavefrontVertex::Term, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
+                        fill(v, [&](const Vec3 &wo) {
+                            return RoughPlasticBSDF::dlog_dalpha(bsdf, state, m.alpha, wi, wo, rho, ks);
+                        });
+                        b.record_alpha[k] = int(record->vertices.size());
+                        record->vertices.push_back(v);
+                    }
+                    continue;
+                }
                 ParamRead read;
                 read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
                 WavefrontVertex v{b.seq[k], WavefrontVertex::Roughness, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
-                v.dlog[0] = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
-                                                                         Vec3{b.nwx[k], b.nwy[k], b.nwz[k]}) : 0.f;
-                v.dlog[1] = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi,
-                                                                        Vec3{b.swx[k], b.swy[k], b.swz[k]}) : 0.f;
-                if (!std::isfinite(v.dlog[0]) || !std::isfinite(v.dlog[1])) record->tape[size_t(b.seq[k])] = 1;
+                const float e = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_e) : 0.f;
+                const float s = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_s) : 0.f;
+                for (int c = 0; c < 3; ++c) v.dlog[0][c] = e, v.dlog[1][c] = s;
+                if (!std::isfinite(e) || !std::isfinite(s)) record->tape[size_t(b.seq[k])] = 1;
                 b.record_rough[k] = int(record->vertices.size());
                 record->vertices.push_back(v);
             }
@@ -2617,9 +2672,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         for (int k = 0; log && k < n; ++k) {
             if (!lit[k]) continue;
             const WavefrontScene::Light &light = ws.lights[size_t(b.light[k])];
-            if (b.record_rough[k] >= 0) {
+            for (const int i : {b.record_rough[k], b.record_alpha[k]}) {
+                if (i < 0) continue;
                 // (The true C_e: zero in a radiance's channels that the lanes read as 1.)
-                float *C = record->vertices[size_t(b.record_rough[k])].value;
+                float *C = record->vertices[size_t(i)].value;
                 const int zero = radiance_zeros(light.radiance_param);
                 C[0] = zero & 1 ? 0.f : b.cr[k], C[1] = zero & 2 ? 0.f : b.cg[k], C[2] = zero & 4 ? 0.f : b.cb[k];
             }

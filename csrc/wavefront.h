@@ -32,7 +32,7 @@
 // samplers other than `independent`: WavefrontScene::predrawn),
 // when some BSDF of the scene is one of those; other scenes, and the autodiff number types, take
 // path_li. render_bwd also traces its paths with
-// it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of GGX
+// it, for gradients of the inputs of lanes linear in them, of emitters' radiance and of rough
 // conductors' roughness (WavefrontVertex).
 #pragma once
 
@@ -240,11 +240,21 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// radiance Le: each contribution C of its emission (found by a ray, or by an emitter
 /// sample) gives dL . C / Le.
 ///
-/// A GGX conductor's roughness alpha enters its vertex's emitter sample through f(wo_e) and
-/// everything after through the BSDF sample's weight f(wo_s) / pdf (the pdf detached), both
-/// as one factor common to the channels: with C_e the emitter sample's contribution,
-/// dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s), dlog = d log f / d alpha
-/// (RoughConductorBSDF::dlog_dalpha).
+/// A rough conductor's roughness alpha (GGX's or Beckmann's) enters its vertex's emitter
+/// sample through f(wo_e) and everything after through the BSDF sample's weight
+/// f(wo_s) / pdf (the pdf detached), both as one factor common to the channels: with C_e the
+/// emitter sample's contribution, dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e)
+/// dlog f(wo_s), dlog = d log f / d alpha (RoughConductorBSDF::dlog_dalpha, through libm's
+/// exp and erfc for Beckmann, as the tape, where the float lanes' values take exp_poly and
+/// erfc_poly: the two differ by float rounding).
+///
+/// A roughplastic's diffuse reflectance rho is a factor of one of the two terms of its value,
+/// f = ks spec + g(rho) base, so it is not one factor of the path's throughput; but like the
+/// roughness it enters the vertex's emitter sample through f(wo_e) and everything after
+/// through f(wo_s) / pdf, so with dlog_c = d log f_c / d rho_c per channel
+/// (RoughPlasticBSDF::dlog_dreflectance), dL_c/drho_c = C_e,c dlog_c(wo_e) +
+/// (L_c - L_before,c - C_e,c) dlog_c(wo_s): a Term record. (f_c holds ks_c spec as well, so
+/// a zero channel of rho needs no `unit`.)
 ///
 /// A zero channel of rho (a reflectance clamped to 0 in a fit) would make the quotient 0 / 0.
 /// There the lanes take that channel of rho as 1 in the path's throughput (`unit`), but not
@@ -256,14 +266,15 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// channel ends there).
 struct WavefrontVertex {
     /// Emission: `gathered` is C, `value` Le; Input: `gathered` is L_before, `value` rho;
-    /// Roughness: `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s.
-    enum Kind { Emission = 0, Input = 1, Roughness = 2 };
+    /// Roughness and Term: `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s
+    /// per channel (the same in all three for a roughness).
+    enum Kind { Emission = 0, Input = 1, Roughness = 2, Term = 3 };
     int seq;            ///< the sample's index in the caller's arrays (-1: void)
     int kind;           ///< a Kind
     float gathered[3];
-    float value[3];     ///< the input (rho), or Le
+    float value[3];     ///< the input (rho), Le, or C_e
     ParamRead read;     ///< the differentiated parameter it came from
-    float dlog[2] = {0.f, 0.f};
+    float dlog[2][3] = {};
     /// Input: its zero channels were taken as 1 in the path's throughput (unit_zero_inputs),
     /// so the path's later radiance in those channels is what multiplies rho there.
     /// Emission: the zero channels of `value` (the true Le) were taken as 1 by the lanes

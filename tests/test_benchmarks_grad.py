@@ -19,8 +19,8 @@ def test01_grad_error_quick(tmp_path, shared):
                 "--cache", str(tmp_path / "cache")])
     rows = read_csv(tmp_path / "results" / "grad_error.csv")
     kinds = {r["kind"] for r in rows}
-    assert kinds == {"reflectance", "texture", "roughness", "roughplastic"}
-    assert len(rows) == 4 * 2  # two spp per kind, ours only
+    assert kinds == {"reflectance", "texture", "roughness", "beckmann", "roughplastic"}
+    assert len(rows) == 5 * 2  # two spp per kind, ours only
     for r in rows:
         assert r["renderer"] == "torch_rbpt" and r["reference"] == "torch_rbpt"
         for col in ("time_s", "err", "err_corr", "fom"):

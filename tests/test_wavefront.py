@@ -182,20 +182,19 @@ def test09_backward_in_lanes_gives_the_tapes_gradients(tmp_path, monkeypatch):
     assert float(grads["side.bsdf.reflectance.value"][1].abs()) > 0
 
 
-@pytest.mark.parametrize("key", ["beckmann.bsdf.alpha.value", "shiny.bsdf.alpha", "shiny.bsdf.diffuse_reflectance.value"])
+@pytest.mark.parametrize("key", ["beckmann.bsdf.specular_reflectance.value", "shiny.bsdf.specular_reflectance.value"])
 def test10_backward_takes_the_tape_for_other_parameters(tmp_path, monkeypatch, key):
-    # Roughness other than a GGX conductor's (a Beckmann conductor's, whose visible normals
-    # are sampled one path at a time, and roughplastic's) and the inputs of BSDFs other than
-    # diffuse ones, mirrors and conductors (even roughplastic's diffuse reflectance) enter the
-    # path otherwise than as one factor of its throughput: the whole backward pass takes the
-    # tape, whatever else is differentiated.
+    # The inputs that the lanes do not differentiate (those other than the diffuse,
+    # mirrors' and conductors' reflectances, and roughplastic's diffuse reflectance and
+    # roughness, test35), such as roughplastic's specular reflectance (Beckmann's or GGX's):
+    # the whole backward pass takes the tape, whatever else is differentiated.
     scene = room(tmp_path, {"max_depth": 5},
                  mirror={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([0.3, 0.25, 0.2]),
                          "bsdf": {"type": "conductor", "specular_reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
                  metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
                         "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}},
                  beckmann={"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.0, 0.15, 0.5]),
-                           "bsdf": {"type": "roughconductor", "alpha": 0.2}},
+                           "bsdf": {"type": "roughplastic", "alpha": 0.2}},
                  shiny={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.02, 0.5]).rotate([1, 0, 0], -90).scale(0.3),
                         "bsdf": {"type": "roughplastic", "distribution": "ggx",
                                  "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.6, 0.5]}}})
@@ -412,21 +411,23 @@ def test12_constant_environment_in_lanes(tmp_path, monkeypatch, integrator, ligh
     assert_lanes_give_the_tapes_gradients(scene, ["sky.radiance.value", "floor.bsdf.reflectance.value"], monkeypatch)
 
 
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
 @pytest.mark.parametrize("lights", ["area lights", "environment only"])
-def test13_backward_in_lanes_for_ggx_roughness(tmp_path, monkeypatch, lights):
-    # A GGX conductor's roughness enters its vertex's emitter sample and BSDF sample weight as
-    # one factor common to the channels, f(wo) (the pdf detached): each vertex deposits
-    # C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s). Lanes, with the tape's gradients:
-    # a sphere, a twosided panel seen from both sides, a very smooth one; with their specular
-    # reflectances, a diffuse reflectance and the lights' radiance.
+def test13_backward_in_lanes_for_conductor_roughness(tmp_path, monkeypatch, lights, distribution):
+    # A rough conductor's roughness (GGX's, or Beckmann's, Mitsuba's default, whose visible
+    # normals are sampled one path at a time) enters its vertex's emitter sample and BSDF
+    # sample weight as one factor common to the channels, f(wo) (the pdf detached): each
+    # vertex deposits C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s). Lanes, with the
+    # tape's gradients: a sphere, a twosided panel seen from both sides, a very smooth one;
+    # with their specular reflectances, a diffuse reflectance and the lights' radiance.
     extra = dict(
         metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([-0.4, 0.2, -0.2]),
-               "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3,
+               "bsdf": {"type": "roughconductor", "distribution": distribution, "alpha": 0.3,
                         "specular_reflectance": {"type": "rgb", "value": [0.95, 0.6, 0.3]}}},
         panel_metal={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.5, -0.3]).rotate([0, 1, 0], -60).scale(0.35),
-                     "bsdf": {"type": "twosided", "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.12}}},
+                     "bsdf": {"type": "twosided", "bsdf": {"type": "roughconductor", "distribution": distribution, "alpha": 0.12}}},
         smooth={"type": "sphere", "radius": 0.15, "to_world": tr.Transform.translate([0.1, 0.15, 0.5]),
-                "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.02}})
+                "bsdf": {"type": "roughconductor", "distribution": distribution, "alpha": 0.02}})
     d = room_dict(tmp_path, {"max_depth": 6}, **extra)
     radiance = "quad.emitter.radiance.value"
     if lights == "environment only":
@@ -480,7 +481,8 @@ def test14_sphere_lights_in_lanes(tmp_path, monkeypatch, lights):
 def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monkeypatch, integrator, shared):
     # `direct` with one emitter sample and one BSDF sample computes path_li's first vertex
     # (path_settings()): it takes the lanes, and its image is direct_li's bit for bit, with
-    # diffuse, mirror, glass and rough vertices under mesh lights, spheres and the sky; and so
+    # diffuse, mirror, glass and rough (GGX and Beckmann) vertices under mesh lights, spheres
+    # and the sky; and so
     # on the shared veach-mis (roughplastic plates, Beckmann's, spheres down to the cone's
     # expansion). So also with one emitter sample alone (the path ends after it) or one BSDF
     # sample alone (no emitter sample drawn), neither MIS-weighted: veach-mis's other two
@@ -492,12 +494,15 @@ def test15_direct_integrator_is_the_first_vertex_of_path_tracing(tmp_path, monke
     d["glass"] = {"type": "sphere", "radius": 0.2, "center": [-0.1, 0.45, 0.6], "bsdf": {"type": "dielectric"}}
     d["metal"] = {"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, -0.2],
                   "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}}
+    d["brushed"] = {"type": "sphere", "radius": 0.15, "center": [0.7, 0.15, 0.4],
+                    "bsdf": {"type": "roughconductor", "alpha": 0.15}}
     scene = tr.load_dict(d)
     wavefront, scalar = render_both(scene, monkeypatch, spp=7, seed=5)
     assert torch.equal(wavefront, scalar)
     assert float(scalar.mean()) > 0.05
     # The backward pass in lanes, against the tape's (direct_li's) gradients.
-    keys = ["floor.bsdf.reflectance.value", "bulb.emitter.radiance.value", "metal.bsdf.alpha.value"]
+    keys = ["floor.bsdf.reflectance.value", "bulb.emitter.radiance.value", "metal.bsdf.alpha.value",
+            "brushed.bsdf.alpha.value"]
     assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch)
     veach_file = {(1, 0): "lum", (0, 1): "bsdf"}.get((integrator.get("emitter_samples", 1), integrator.get("bsdf_samples", 1)), "both")
     veach = tr.load_file(SHARED / f"veach-mis/integrator_direct_{veach_file}.xml")
@@ -1102,3 +1107,57 @@ def test34_lights_sampled_aside_as_a_new_emitter_type(tmp_path, monkeypatch, lig
     wavefront, scalar = render_both(scene, monkeypatch, spp=9, seed=5)
     assert torch.equal(wavefront, scalar)
     assert_lanes_give_the_tapes_gradients(scene, keys + ["floor.bsdf.reflectance.value"], monkeypatch, spp=9)
+
+
+@pytest.mark.parametrize("plastic", ["ggx", "beckmann, nonlinear", "bitmap, twosided, sky"])
+def test35_backward_in_lanes_for_roughplastic(tmp_path, monkeypatch, plastic):
+    # A roughplastic's diffuse reflectance rho is a factor of one of its value's two terms,
+    # f = ks spec + g(rho) base, g(rho) = rho / (1 - R_int) (rho / (1 - rho R_int) when
+    # nonlinear): each of its vertices deposits, per channel, C_e dlog f(wo_e) +
+    # (L - L_before - C_e) dlog f(wo_s) with dlog = d log f / d rho (a Term record); and so
+    # does its roughness alpha, with dlog = d log f / d alpha (through D, the G1s and the
+    # tables, whose derivatives the tape takes to first order). Lanes, with the tape's
+    # gradients: a sphere and a panel of it (GGX's; Beckmann's, nonlinear; a bitmap on a
+    # twosided panel seen from both sides, under the sky alone), each with both parameters,
+    # beside a diffuse reflectance, a Beckmann conductor's roughness and a light's radiance;
+    # then the roughness alone, and the reflectance alone. A zero channel of
+    # a constant rho needs no `unit` (f keeps ks spec there), and its derivative is not zero;
+    # but Beckmann's spec, far from its peak, is zero or tiny in float: where f_c is, it gives
+    # no derivative, or a huge dlog_c (whose deposit would magnify the float sums' rounding),
+    # and the sample takes the tape.
+    texels = np.random.default_rng(7).uniform(0.1, 0.9, (4, 6, 3)).astype(np.float32)
+    tr.write_image(tmp_path / "p.exr", torch.from_numpy(texels))
+    bitmap = plastic.startswith("bitmap")
+
+    def bsdf():
+        rho = ({"type": "bitmap", "filename": str(tmp_path / "p.exr")} if bitmap
+               else {"type": "rgb", "value": [0.7, 0.0, 0.3]})
+        return {"type": "roughplastic", "distribution": "beckmann" if plastic.startswith("beckmann") else "ggx",
+                "alpha": 0.2, "diffuse_reflectance": rho, "nonlinear": "nonlinear" in plastic}
+    twosided = "twosided" in plastic
+    d = room_dict(
+        tmp_path, {"max_depth": 6},
+        shiny={"type": "sphere", "radius": 0.25, "to_world": tr.Transform.translate([-0.3, 0.25, 0.1]), "bsdf": bsdf()},
+        board={"type": "rectangle", "to_world": tr.Transform.translate([0.5, 0.5, -0.3]).rotate([0, 1, 0], -60).scale(0.35),
+               "bsdf": {"type": "twosided", "bsdf": bsdf()} if twosided else bsdf()},
+        metal={"type": "sphere", "radius": 0.2, "to_world": tr.Transform.translate([0.3, 0.2, 0.5]),
+               "bsdf": {"type": "roughconductor", "alpha": 0.3}})
+    radiance = "quad.emitter.radiance.value"
+    if "sky" in plastic:
+        for key in ("quad", "strip", "panel"):
+            del d[key]
+        d["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.6, 0.8]}}
+        radiance = "sky.radiance.value"
+    scene = tr.load_dict(d)
+    field = "data" if bitmap else "value"
+    board = f"board.bsdf.{'brdf_0.' if twosided else ''}"
+    rho_keys = [f"shiny.bsdf.diffuse_reflectance.{field}", f"{board}diffuse_reflectance.{field}"]
+    alpha_keys = ["shiny.bsdf.alpha", f"{board}alpha"]
+    others = ["floor.bsdf.reflectance.value", "metal.bsdf.alpha.value", radiance]
+    beckmann = plastic.startswith("beckmann")
+    assert_lanes_give_the_tapes_gradients(scene, rho_keys + alpha_keys + others, monkeypatch, spp=16, some_taped=beckmann)
+    assert_lanes_give_the_tapes_gradients(scene, alpha_keys + others[:1], monkeypatch, spp=16)
+    assert_lanes_give_the_tapes_gradients(scene, rho_keys[:1], monkeypatch, spp=16, some_taped=beckmann)
+    if not bitmap:
+        grads, _, _ = backward(scene, rho_keys, spp=16)
+        assert all(float(grads[k][1].abs()) > 0 for k in rho_keys)
