@@ -305,7 +305,10 @@ def render(scene, spp, seed=0):
     (Until session 49 the passes' normalised images were averaged, which keeps each pass's
     ratio estimate and its bias; small: cornell-box's 4096 spp reference, 64 passes of 64
     spp, moved by 8e-5 RMS, its largest pixel by 0.009.) A render of one pass is
-    ``mi.render``'s image."""
+    ``mi.render``'s image. Mitsuba's AD integrators (``prb``) refuse to render without
+    developing the film, so their passes' developed images are averaged instead (each pass
+    then keeps its own ratio estimate, the small bias described above: the gradient
+    benchmark's fixed target images are rendered so)."""
     import numpy as np
     mi = _mitsuba()
     spp = int(spp)
@@ -323,6 +326,9 @@ def render(scene, spp, seed=0):
         img = np.asarray(mi.render(scene, spp=spp, seed=_pass_seed(seed, 0)), dtype=np.float32)
         img = img if img.ndim == 3 else img[..., None]
         return img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, axis=2)
+    if _is_ad_integrator(scene.integrator()):
+        images = [render(scene, per_pass, seed=_pass_seed(seed, i)) for i in range(npass)]
+        return np.mean(np.stack(images).astype(np.float64), axis=0).astype(np.float32)
     sums = weights = None
     for i in range(npass):
         scene.integrator().render(scene, sensor, seed=_pass_seed(seed, i), spp=per_pass, develop=False)
@@ -331,6 +337,13 @@ def render(scene, spp, seed=0):
         weights = raw[..., -1:] if weights is None else weights + raw[..., -1:]
     # (As the film's develop: a pixel that no sample reached is 0.)
     return np.where(weights != 0, sums / np.where(weights != 0, weights, 1.0), 0.0).astype(np.float32)
+
+
+def _is_ad_integrator(integrator) -> bool:
+    """Whether ``integrator`` is one of Mitsuba's AD integrators (prb and its kin: their
+    Python classes derive from ``mi.CppADIntegrator``)."""
+    base = getattr(_mitsuba(), "CppADIntegrator", None)
+    return base is not None and isinstance(integrator, base)
 
 
 def _compiled_kernels(dr) -> int:

@@ -914,9 +914,6 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
             if (unit_radiance[p]) lane_values.data[p] = v.data();
         }
         wavefront = wavefront_scene(RenderContext<RGB<float>>(scene, lane_values), cfg, camera);
-        // (A record's deposit takes the path's radiance at the sample's end, where `direct`'s
-        // sub-paths would need their own: the tape re-traces those.)
-        if (wavefront && path_settings(cfg)->sub_paths > 1) wavefront.reset();
         // (Other lanes' inputs are read at trace time too, but the tape would re-trace every
         // path that reaches them.)
         for (size_t i = 0; wavefront && i < scene.bsdfs.size(); ++i) {
@@ -984,6 +981,8 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         WavefrontRecord record;
         std::vector<std::array<int, 6>> zeros(Chunk);
         std::vector<RGB<double>> fake, fake_total(Chunk);
+        const bool sub_paths = path_settings(cfg) && path_settings(cfg)->sub_paths > 1;
+        std::vector<int> sub_end, next_end(Chunk);
         int n_batch = 0;
         if constexpr (std::is_same_v<T, float>) {
             if (wavefront) {
@@ -1010,7 +1009,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                     const WavefrontVertex &v = record.vertices[i];
                     for (int c = 0; c < 3; ++c) {
                         if (v.seq < 0 || v.kind == WavefrontVertex::Roughness || v.kind == WavefrontVertex::Term ||
-                            v.value[c] != 0.f)
+                            v.kind == WavefrontVertex::End || v.value[c] != 0.f)
                             continue;
                         if (!v.unit) {
                             record.tape[size_t(v.seq)] = 1;
@@ -1018,6 +1017,12 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                         }
                         if (v.kind == WavefrontVertex::Emission) {
                             any_fake = true;
+                            continue;
+                        }
+                        // (The first and second such records of a sample bound each other's
+                        // terms, which `direct`'s sub-paths would not: the tape.)
+                        if (sub_paths) {
+                            record.tape[size_t(v.seq)] = 1;
                             continue;
                         }
                         int &first = zeros[size_t(v.seq)][size_t(2 * c)], &second = zeros[size_t(v.seq)][size_t(2 * c + 1)];
@@ -1049,14 +1054,27 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                         record.tape[size_t(k)] = 1;  // (no deposits)
                     }
                 }
+                // With `direct`'s sub-paths, each record's terms end where its sub-path ends: at
+                // the sample's next End record (sub_end[i]), or at its radiance.
+                if (sub_paths) {
+                    sub_end.assign(record.vertices.size(), -1);
+                    std::fill(next_end.begin(), next_end.begin() + n_batch, -1);
+                    for (size_t i = record.vertices.size(); i-- > 0;) {
+                        const WavefrontVertex &v = record.vertices[i];
+                        if (v.seq < 0) continue;
+                        if (v.kind == WavefrontVertex::End) next_end[size_t(v.seq)] = int(i);
+                        else sub_end[i] = next_end[size_t(v.seq)];
+                    }
+                }
                 // The deposits, with the zero channels' bookkeeping only where a record needs it
                 // (Unit: a reflectance's, Fake: a radiance's).
                 auto deposit = [&](auto unit, auto fake_terms) {
                     constexpr bool Unit = decltype(unit)::value, Fake = decltype(fake_terms)::value;
                     for (size_t i = 0; i < record.vertices.size(); ++i) {
                         const WavefrontVertex &v = record.vertices[i];
-                        if (v.seq < 0 || record.tape[size_t(v.seq)]) continue;
+                        if (v.seq < 0 || v.kind == WavefrontVertex::End || record.tape[size_t(v.seq)]) continue;
                         const RGB<float> &L = radiance[v.seq];
+                        const int sub_path_end = sub_paths ? sub_end[i] : -1;
                         const RGB<T> &dL = adjoints[v.seq];
                         double g[3];
                         for (int c = 0; c < 3; ++c) {
@@ -1072,6 +1090,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                             // such record (the true radiance's end), and for that record at the
                             // second; a record after the first gathers nothing there.
                             double end = Fake ? double(L[c]) - fake_total[size_t(v.seq)][c] : double(L[c]);
+                            if (sub_path_end >= 0) end = before(size_t(sub_path_end));
                             if constexpr (Unit) {
                                 const std::array<int, 6> &z = zeros[size_t(v.seq)];
                                 const int first = z[size_t(2 * c)], second = z[size_t(2 * c + 1)];

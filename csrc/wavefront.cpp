@@ -2200,9 +2200,6 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     std::vector<int> &again = buffers.again;
     size_t again_next = 0;
     again.clear();
-    // (The backward pass's records take the path's radiance at its end for each vertex's:
-    // render_bwd traces `direct`'s sub-paths with the tape.)
-    assert(!record || !sub_paths);
     RoughLanes &ggx = buffers.ggx, &beckmann = buffers.beckmann;
     // The channels (bits) of radiance parameter p that are zero and that the lanes read as 1
     // (WavefrontRecord::unit_radiance).
@@ -2319,6 +2316,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         const int seq = b.seq[k];
         L[seq] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]);
         if (!sub_paths || (b.depth[k] == 0 && b.prim[k] == ~0u)) return;
+        // (The radiance where the sub-path ends, for render_bwd: its records' terms end there.)
+        if (record) record->vertices.push_back({seq, WavefrontVertex::End, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, ParamRead{}});
         Buffers::SubPaths &sub = buffers.subs[size_t(seq)];
         if (++sub.done == cfg.sub_paths) return;
         sub.state = b.state[k], sub.inc = b.inc[k];

@@ -267,8 +267,10 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 struct WavefrontVertex {
     /// Emission: `gathered` is C, `value` Le; Input: `gathered` is L_before, `value` rho;
     /// Roughness and Term: `gathered` is L_before, `value` C_e, `dlog` towards wo_e and wo_s
-    /// per channel (the same in all three for a roughness).
-    enum Kind { Emission = 0, Input = 1, Roughness = 2, Term = 3 };
+    /// per channel (the same in all three for a roughness). End: `gathered` is the radiance
+    /// where one of `direct`'s sub-paths ended (IntegratorSettings::sub_paths), where the
+    /// terms of its records end (the sample's last sub-path ends at the sample's radiance).
+    enum Kind { Emission = 0, Input = 1, Roughness = 2, Term = 3, End = 4 };
     int seq;            ///< the sample's index in the caller's arrays (-1: void)
     int kind;           ///< a Kind
     float gathered[3];

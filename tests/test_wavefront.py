@@ -948,11 +948,16 @@ def test30_direct_with_several_samples_takes_the_lanes(tmp_path, monkeypatch, in
     one.pop("shading_samples", None)
     d["integrator"] = {"type": "direct", **one}
     assert not torch.equal(tr.render(tr.load_dict(d), spp=4, seed=5), scalar)
-    # The backward pass traces them with the tape (its records would need each sub-path's
-    # radiance at its end).
-    grads, lanes, taped = backward(scene, ["floor.bsdf.reflectance.value"], spp=4)
-    assert lanes == 0 and taped == 21 * 13 * 4
-    assert float(grads["floor.bsdf.reflectance.value"].abs().max()) > 0
+    # The backward pass in lanes, with the tape's (direct_li's) gradients: each sub-path's
+    # records take the radiance where it ended (an End record) for the end of their terms.
+    # A reflectance with a zero channel sends its samples to the tape (its `unit` records
+    # bound each other's terms within one path).
+    keys = ["floor.bsdf.reflectance.value", "side.bsdf.reflectance.value", "metal.bsdf.alpha.value",
+            "plate.bsdf.alpha.value", "bulb.emitter.radiance.value", "quad.emitter.radiance.value"]
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=4)
+    with torch.no_grad():
+        scene.params["side.bsdf.reflectance.value"].copy_(torch.tensor([0.2, 0.0, 0.3]))
+    assert_lanes_give_the_tapes_gradients(scene, keys, monkeypatch, spp=4, some_taped=True)
 
 
 def test31_room_of_balls_is_a_flat_tree_of_several_nodes(tmp_path, monkeypatch):
