@@ -2264,9 +2264,13 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 if (parts) parts[next + i] = sampler.parts();
             }
         }
+        // (In SIMD lanes: with `next` read in the loop, which a store to an int column might
+        // change for all GCC knows, it stored each lane's columns one at a time.)
+        const int seq_of_lane_0 = next - first;
+#pragma GCC ivdep
         for (int k = first; k < first + m; ++k) {
             b.Lr[k] = b.Lg[k] = b.Lb[k] = 0.f;
-            reset_lane(k, next + (k - first));
+            reset_lane(k, seq_of_lane_0 + k);
         }
         for (int k = first; sub_paths && k < first + m; ++k) {
             Buffers::SubPaths &sub = buffers.subs[size_t(b.seq[k])];
