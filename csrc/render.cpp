@@ -963,9 +963,9 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
         // differentiated reflectance or transmittance (linear_in_inputs) depositing
         // dL . (L - L_before) / rho into what it read, each emission of a differentiated
         // radiance dL . C / Le, each rough conductor's vertex of a differentiated roughness
-        // and each roughplastic's of a differentiated roughness or diffuse reflectance (per
-        // channel)
-        // dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)); the tape re-traces the
+        // and each roughplastic's of a differentiated roughness or diffuse reflectance, per
+        // channel, dL . (C_e dlog f(wo_e) + (L - L_before - C_e) dlog f(wo_s)), each record's
+        // L being its sub-path's with `direct`'s several samples; the tape re-traces the
         // paths that read those parameters otherwise, or where a dielectric's rho has a zero
         // channel (the quotient fails; the other inputs' zero channels are taken as 1 in the
         // throughput, and a radiance's in the lanes' values: see WavefrontVertex::unit).

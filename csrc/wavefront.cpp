@@ -329,10 +329,11 @@ static_assert(SamplerColumns::Capacity >= B, "a batch's samplers fit SamplerColu
 /// and the cbox 3 of 4, veach-mis 2 of 4.)
 constexpr int Column = B + 16;
 
-/// The largest d log f_c / d rho_c of a roughplastic's Term record (WavefrontVertex) that the
-/// lanes deposit; a sample with a larger one takes the tape. Its deposit multiplies the
-/// path's later radiance L_c - L_before,c by it, a difference of float sums whose rounding it
-/// magnifies as much (as a diffuse input's quotient by rho, 1 / rho, does).
+/// The largest |d log f_c / d theta| of a roughplastic's Term record (WavefrontVertex, theta
+/// its diffuse reflectance or roughness) that the lanes deposit; a sample with a larger one
+/// takes the tape. Its deposit multiplies the path's later radiance L_c - L_before,c by it,
+/// a difference of float sums whose rounding it magnifies as much (as a diffuse input's
+/// quotient by rho, 1 / rho, does).
 constexpr float MaxTermDlog = 1e4f;
 
 /// The batch's paths, one column per quantity; live paths are packed into [0, n).
@@ -2580,9 +2581,10 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                         const RGB<float> s = b.alive[k] ? dlog(wo_s) : RGB<float>(0.f);
                         for (int c = 0; c < 3; ++c) {
                             v.dlog[0][c] = e[c], v.dlog[1][c] = s[c];
-                            // (Where rho_c is 0 or tiny and so is ks_c spec, as Beckmann's far
-                            // from its peak, dlog_c is huge and L_c - L_before,c holds little
-                            // but the float sums' rounding: the tape. Diffuse dlog is 1 / rho.)
+                            // (Where f_c is 0 and its derivative is not, dlog_c is infinite;
+                            // where f_c is tiny, as ks_c spec with rho_c 0 under Beckmann's far
+                            // from its peak, huge, and L_c - L_before,c holds little but the
+                            // float sums' rounding: the tape. A diffuse dlog is 1 / rho.)
                             if (!(std::abs(e[c]) <= MaxTermDlog) || !(std::abs(s[c]) <= MaxTermDlog))
                                 record->tape[size_t(b.seq[k])] = 1;
                         }
@@ -2592,9 +2594,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                             return RoughPlasticBSDF::dlog_dreflectance(bsdf, state, m.alpha, wi, wo, rho, ks);
                         });
                     }
-                    if (alpha_term && !state.dtables) record->tape[size_t(b.seq[k])] = 1;  // (not reached)
-                    if (alpha_term && state.dtables) {
-                        // (render_bwd gives the lanes' context the tables' derivatives.)
+                    if (alpha_term && !state.dtables) {
+                        // (Not reached: render_bwd gives the lanes' context the tables'
+                        // derivatives of a differentiated roughness.)
+                        record->tape[size_t(b.seq[k])] = 1;
+                    } else if (alpha_term) {
                         ParamRead read;
                         read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
                         WavefrontVertex v{b.seq[k], WavefrontVertex::Term, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};

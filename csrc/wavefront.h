@@ -254,7 +254,11 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// through f(wo_s) / pdf, so with dlog_c = d log f_c / d rho_c per channel
 /// (RoughPlasticBSDF::dlog_dreflectance), dL_c/drho_c = C_e,c dlog_c(wo_e) +
 /// (L_c - L_before,c - C_e,c) dlog_c(wo_s): a Term record. (f_c holds ks_c spec as well, so
-/// a zero channel of rho needs no `unit`.)
+/// a zero channel of rho needs no `unit`.) Its roughness likewise, with dlog_c =
+/// d log f_c / d alpha (RoughPlasticBSDF::dlog_dalpha): a second Term record.
+///
+/// With `direct`'s several samples per vertex (sub-paths), a record's L is the radiance
+/// where its sub-path ended (an End record), not the sample's.
 ///
 /// A zero channel of rho (a reflectance clamped to 0 in a fit) would make the quotient 0 / 0.
 /// There the lanes take that channel of rho as 1 in the path's throughput (`unit`), but not
