@@ -57,8 +57,10 @@ struct Params<RGB<T>> {
     std::vector<int64_t> numel;
     ParamReadLog *log = nullptr;  ///< if set, notes the reads of the parameters it watches
 
-    /// RGB value of a parameter of 3 entries, or a scalar broadcast to RGB.
-    RGB<T> spectrum(int p) const {
+    /// RGB value of a parameter of 3 entries, or a scalar broadcast to RGB. (Inlined: called,
+    /// its value came back through the stack in two stores that the caller's loads spanned, a
+    /// store-forwarding stall at each of the backward pass's lookups in the shade stage.)
+    RBPT_INLINE RGB<T> spectrum(int p) const {
         if (log && log->watched[p]) log->note(p, numel[p] == 1 ? 1 : 3, 1, nullptr, nullptr);
         return value_of(data[p], numel[p]);
     }

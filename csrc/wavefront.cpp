@@ -1954,7 +1954,7 @@ void bitmap_stage(Batch &b, int n, const WavefrontScene::BitmapLookup &bm, Wavef
         ParamRead read;
         read.param = bm.param, read.channels = channels, read.n = 4;
         for (int i = 0; i < 4; ++i) read.offset[i] = read_t[i][j], read.weight[i] = read_w[i][j];
-        record->vertices.push_back({b.seq[k], WavefrontVertex::Input, {b.Lr[k], b.Lg[k], b.Lb[k]}, {ar[j], ag[j], ab[j]}, read});
+        record->add(b.seq[k], WavefrontVertex::Input, b.Lr[k], b.Lg[k], b.Lb[k], ar[j], ag[j], ab[j], read);
         b.record_reflect[k] = int(record->vertices.size()) - 1;
         unit_zero_inputs(b, k, record->vertices.back(), WavefrontScene::Lane(bm.lane));
     }
@@ -2219,7 +2219,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto emission_read = [&](int k, int reads_before, const Emitter &e, const RGB<float> &Le) {
         if (!log || log->count != reads_before + 1 || log->last.param != e.radiance) return 0;
         RGB<float> radiance = Params<RGB<float>>::value_of(ctx.params.data[size_t(e.radiance)], ctx.params.numel[size_t(e.radiance)]);
-        record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {Le[0], Le[1], Le[2]}, {radiance[0], radiance[1], radiance[2]}, log->last});
+        record->add(b.seq[k], WavefrontVertex::Emission, Le[0], Le[1], Le[2], radiance[0], radiance[1], radiance[2], log->last);
         unit_radiance(record->vertices.back(), e.radiance);
         return 1;
     };
@@ -2322,7 +2322,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         L[seq] = RGB<float>(b.Lr[k], b.Lg[k], b.Lb[k]);
         if (!sub_paths || (b.depth[k] == 0 && b.prim[k] == ~0u)) return;
         // (The radiance where the sub-path ends, for render_bwd: its records' terms end there.)
-        if (record) record->vertices.push_back({seq, WavefrontVertex::End, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, ParamRead{}});
+        if (record) record->add(seq, WavefrontVertex::End, b.Lr[k], b.Lg[k], b.Lb[k], 0.f, 0.f, 0.f, ParamRead{});
         Buffers::SubPaths &sub = buffers.subs[size_t(seq)];
         if (++sub.done == cfg.sub_paths) return;
         sub.state = b.state[k], sub.inc = b.inc[k];
@@ -2505,7 +2505,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             auto keep = [&](int reads_before, const Color3f &value) {
                 // A differentiated input: the vertex, for render_bwd's deposit.
                 if (!log || !linear || log->count != reads_before + 1) return -1;
-                record->vertices.push_back({b.seq[k], WavefrontVertex::Input, {b.Lr[k], b.Lg[k], b.Lb[k]}, {value.v[0], value.v[1], value.v[2]}, log->last});
+                record->add(b.seq[k], WavefrontVertex::Input, b.Lr[k], b.Lg[k], b.Lb[k], value.v[0], value.v[1], value.v[2], log->last);
                 ++expected;
                 return int(record->vertices.size()) - 1;
             };
@@ -2515,7 +2515,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 // A roughplastic's differentiated diffuse reflectance: a Term record, whose C_e
                 // and dlog the shadow stage and the records after the vector stage fill in.
                 b.record_rough[k] = int(record->vertices.size());
-                record->vertices.push_back({b.seq[k], WavefrontVertex::Term, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, log->last});
+                record->add(b.seq[k], WavefrontVertex::Term, b.Lr[k], b.Lg[k], b.Lb[k], 0.f, 0.f, 0.f, log->last);
                 ++expected;
             }
             b.record_refract[k] = -1;
@@ -2601,24 +2601,22 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                     } else if (alpha_term) {
                         ParamRead read;
                         read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
-                        WavefrontVertex v{b.seq[k], WavefrontVertex::Term, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
-                        fill(v, [&](const Vec3 &wo) {
-                            return RoughPlasticBSDF::dlog_dalpha(bsdf, state, m.alpha, wi, wo, rho, ks);
-                        });
                         b.record_alpha[k] = int(record->vertices.size());
-                        record->vertices.push_back(v);
+                        fill(record->add(b.seq[k], WavefrontVertex::Term, b.Lr[k], b.Lg[k], b.Lb[k], 0.f, 0.f, 0.f, read),
+                             [&](const Vec3 &wo) {
+                                 return RoughPlasticBSDF::dlog_dalpha(bsdf, state, m.alpha, wi, wo, rho, ks);
+                             });
                     }
                     continue;
                 }
                 ParamRead read;
                 read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
-                WavefrontVertex v{b.seq[k], WavefrontVertex::Roughness, {b.Lr[k], b.Lg[k], b.Lb[k]}, {0.f, 0.f, 0.f}, read};
                 const float e = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_e) : 0.f;
                 const float s = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_s) : 0.f;
-                for (int c = 0; c < 3; ++c) v.dlog[0][c] = e, v.dlog[1][c] = s;
                 if (!std::isfinite(e) || !std::isfinite(s)) record->tape[size_t(b.seq[k])] = 1;
                 b.record_rough[k] = int(record->vertices.size());
-                record->vertices.push_back(v);
+                WavefrontVertex &v = record->add(b.seq[k], WavefrontVertex::Roughness, b.Lr[k], b.Lg[k], b.Lb[k], 0.f, 0.f, 0.f, read);
+                for (int c = 0; c < 3; ++c) v.dlog[0][c] = e, v.dlog[1][c] = s;
             }
         }
         for (int i = 0; i < n_side; ++i) {
@@ -2692,7 +2690,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 read.param = light.radiance_param, read.n = 1, read.weight[0] = 1.f;
                 read.channels = ctx.params.numel[size_t(light.radiance_param)] == 1 ? 1 : 3;
                 const Color3f &Le = light.radiance;
-                record->vertices.push_back({b.seq[k], WavefrontVertex::Emission, {b.cr[k], b.cg[k], b.cb[k]}, {Le.v[0], Le.v[1], Le.v[2]}, read});
+                record->add(b.seq[k], WavefrontVertex::Emission, b.cr[k], b.cg[k], b.cb[k], Le.v[0], Le.v[1], Le.v[2], read);
                 unit_radiance(record->vertices.back(), light.radiance_param);
             }
         }
