@@ -1824,8 +1824,8 @@ void BVH::flat_sphere(const Vec3 &center, float radius, const RayColumns &r, con
 }
 
 /// intersect_disk_or_cylinder() for rays list[0, m) of `r` and the disk (Disk) or cylinder
-/// `s`, lane by lane (its operations in double, its tests as selects of float flags, 1 or 0:
-/// GCC does not vectorise && of them): hit[j] 1 or 0, and t[j], u[j], v[j].
+/// `s`, lane by lane (its test, disk_or_cylinder_test, whose conditions are selects of float
+/// flags: GCC does not vectorise && of them): hit[j] 1 or 0, and t[j], u[j], v[j].
 template <bool Disk>
 void BVH::flat_other(const Shape &s, const RayColumns &r, const int *list, int m, float *t_out, float *u_out,
                      float *v_out, float *hit_out) {
@@ -1844,38 +1844,8 @@ void BVH::flat_other(const Shape &s, const RayColumns &r, const int *list, int m
             lo[i] = M[i][0] * o[0] + M[i][1] * o[1] + M[i][2] * o[2] + M[i][3];
             ld[i] = M[i][0] * dx + M[i][1] * dy + M[i][2] * dz;
         }
-        const double tmin = q_tmin[k], tmax = q_tmax[k];
-        if constexpr (Disk) {
-            const double t = -lo[2] / ld[2];
-            const double x = lo[0] + t * ld[0], y = lo[1] + t * ld[1];
-            float hit = t > tmin ? 1.f : 0.f;
-            hit = t < tmax ? hit : 0.f;
-            hit = x * x + y * y > 1.0 ? 0.f : hit;
-            hit_out[j] = ld[2] == 0.0 ? 0.f : hit;
-            t_out[j] = float(t), u_out[j] = float(x), v_out[j] = float(y);
-        } else {
-            // As Mitsuba: the nearest root within the length, else the farther one.
-            const double A = ld[0] * ld[0] + ld[1] * ld[1];
-            const double B = 2.0 * (ld[0] * lo[0] + ld[1] * lo[1]);
-            const double C = lo[0] * lo[0] + lo[1] * lo[1] - radius * radius;
-            const double disc = B * B - 4.0 * A * C;
-            const double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
-            const double r0 = q / A, r1 = q != 0.0 ? C / q : r0;
-            const double t0 = r0 > r1 ? r1 : r0, t1 = r0 > r1 ? r0 : r1;
-            const double z0 = lo[2] + t0 * ld[2], z1 = lo[2] + t1 * ld[2];
-            float ok0 = t0 > tmin ? 1.f : 0.f;
-            ok0 = t0 < tmax ? ok0 : 0.f;
-            ok0 = z0 >= 0.0 ? ok0 : 0.f;
-            ok0 = z0 <= length ? ok0 : 0.f;
-            float ok1 = t1 > tmin ? 1.f : 0.f;
-            ok1 = t1 < tmax ? ok1 : 0.f;
-            ok1 = z1 >= 0.0 ? ok1 : 0.f;
-            ok1 = z1 <= length ? ok1 : 0.f;
-            float hit = ok0 != 0.f ? 1.f : ok1;
-            hit = disc < 0.0 ? 0.f : hit;
-            hit_out[j] = A == 0.0 ? 0.f : hit;
-            t_out[j] = ok0 != 0.f ? float(t0) : float(t1), u_out[j] = 0.f, v_out[j] = 0.f;
-        }
+        hit_out[j] = disk_or_cylinder_test<Disk>(lo, ld, q_tmin[k], q_tmax[k], radius, length, &t_out[j], &u_out[j],
+                                                 &v_out[j]);
     }
 }
 

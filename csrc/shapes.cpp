@@ -10,29 +10,11 @@ AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmi
     s.object_point(o, lo);
     for (int i = 0; i < 3; ++i)
         ld[i] = s.to_object[i][0] * ray.d.x + s.to_object[i][1] * ray.d.y + s.to_object[i][2] * ray.d.z;
-    if (s.kind == ShapeKind::Disk) {
-        if (ld[2] == 0.0) return out;
-        double t = -lo[2] / ld[2];
-        if (!(t > tmin && t < tmax)) return out;
-        double x = lo[0] + t * ld[0], y = lo[1] + t * ld[1];
-        if (x * x + y * y > 1.0) return out;
-        return {float(t), float(x), float(y), true};
-    }
-    // Cylinder, as Mitsuba: the nearest root within the length, else the farther one.
-    double A = ld[0] * ld[0] + ld[1] * ld[1];
-    double B = 2.0 * (ld[0] * lo[0] + ld[1] * lo[1]);
-    double C = lo[0] * lo[0] + lo[1] * lo[1] - double(s.radius) * s.radius;
-    if (A == 0.0) return out;
-    double disc = B * B - 4.0 * A * C;
-    if (disc < 0.0) return out;
-    double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
-    double t0 = q / A, t1 = (q != 0.0) ? C / q : t0;
-    if (t0 > t1) std::swap(t0, t1);
-    for (double t : {t0, t1}) {
-        double z = lo[2] + t * ld[2];
-        if (t > tmin && t < tmax && z >= 0.0 && z <= s.length) return {float(t), 0.f, 0.f, true};
-    }
-    return out;
+    float t, u, v;
+    const float hit = s.kind == ShapeKind::Disk
+                          ? disk_or_cylinder_test<true>(lo, ld, tmin, tmax, s.radius, s.length, &t, &u, &v)
+                          : disk_or_cylinder_test<false>(lo, ld, tmin, tmax, s.radius, s.length, &t, &u, &v);
+    return hit != 0.f ? AnalyticHit{t, u, v, true} : out;
 }
 
 /// The surface interaction on a disk or cylinder: the hit point projected onto the surface in

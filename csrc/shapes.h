@@ -294,6 +294,47 @@ struct AnalyticHit {
 AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmin,
                                                      float tmax);
 
+/// intersect_disk_or_cylinder()'s test of a ray at lo + t ld in the disk's (Disk) or the
+/// cylinder's object space, in double and without branches (its conditions are selects of
+/// float flags, 1 or 0, so that BVH::flat_other's loop over rays in lanes vectorises): the
+/// flag, with t and, for a disk, the hit's object-space x and y in u and v (a cylinder's 0),
+/// which hold anything where the flag is 0.
+template <bool Disk>
+RBPT_INLINE float disk_or_cylinder_test(const double lo[3], const double ld[3], double tmin, double tmax,
+                                        double radius, double length, float *t_out, float *u_out, float *v_out) {
+    if constexpr (Disk) {
+        const double t = -lo[2] / ld[2];
+        const double x = lo[0] + t * ld[0], y = lo[1] + t * ld[1];
+        float hit = t > tmin ? 1.f : 0.f;
+        hit = t < tmax ? hit : 0.f;
+        hit = x * x + y * y > 1.0 ? 0.f : hit;
+        *t_out = float(t), *u_out = float(x), *v_out = float(y);
+        return ld[2] == 0.0 ? 0.f : hit;
+    } else {
+        // As Mitsuba: the nearest root within the length, else the farther one.
+        const double A = ld[0] * ld[0] + ld[1] * ld[1];
+        const double B = 2.0 * (ld[0] * lo[0] + ld[1] * lo[1]);
+        const double C = lo[0] * lo[0] + lo[1] * lo[1] - radius * radius;
+        const double disc = B * B - 4.0 * A * C;
+        const double q = -0.5 * (B + std::copysign(std::sqrt(disc), B));
+        const double r0 = q / A, r1 = q != 0.0 ? C / q : r0;
+        const double t0 = r0 > r1 ? r1 : r0, t1 = r0 > r1 ? r0 : r1;
+        const double z0 = lo[2] + t0 * ld[2], z1 = lo[2] + t1 * ld[2];
+        float ok0 = t0 > tmin ? 1.f : 0.f;
+        ok0 = t0 < tmax ? ok0 : 0.f;
+        ok0 = z0 >= 0.0 ? ok0 : 0.f;
+        ok0 = z0 <= length ? ok0 : 0.f;
+        float ok1 = t1 > tmin ? 1.f : 0.f;
+        ok1 = t1 < tmax ? ok1 : 0.f;
+        ok1 = z1 >= 0.0 ? ok1 : 0.f;
+        ok1 = z1 <= length ? ok1 : 0.f;
+        float hit = ok0 != 0.f ? 1.f : ok1;
+        hit = disc < 0.0 ? 0.f : hit;
+        *t_out = ok0 != 0.f ? float(t0) : float(t1), *u_out = 0.f, *v_out = 0.f;
+        return A == 0.0 ? 0.f : hit;
+    }
+}
+
 /// A sphere's uv at the unit direction q from its centre, in the sphere's own frame
 /// (Shape::local_x, local_y, local_z): u = phi / 2pi, v = theta / pi. From atan2_poly and
 /// acos_full, not libm's, so that Geometry::interaction and the wavefront's interactions in
