@@ -265,16 +265,11 @@ struct RoughConductorBSDF {
         return bs;
     }
     /// d log(value) / d alpha at (wi, wo): alpha enters the value as one factor common to all
-    /// channels, D(h) G1(wi, h) G1(wo, h), differentiated here with a dual number through
-    /// the code the tape differentiates (render_bwd's roughness derivatives in lanes). Zero
-    /// where the value is.
+    /// channels, D(h) G1(wi, h) G1(wo, h), whose derivative microfacet_dlog_dalpha gives in
+    /// closed form (render_bwd's roughness derivatives in lanes). Zero where the value is.
     static float dlog_dalpha(MicrofacetType type, float alpha, const Vec3 &wi, const Vec3 &wo) {
         if (!(wi.z > 0.f && wo.z > 0.f)) return 0.f;
-        const Dual<float> a(RGB<float>(alpha), RGB<float>(1.f));
-        const Vec3 h = normalize(wi + wo);
-        Dual<float> f = microfacet_D(type, a, h) * smith_G1(type, a, wi, h) * smith_G1(type, a, wo, h);
-        float value = f.v[0];
-        return value != 0.f ? f.d[0] / value : 0.f;
+        return microfacet_dlog_dalpha(type, alpha, wi, wo, normalize(wi + wo)).dlog;
     }
 };
 
@@ -422,7 +417,7 @@ struct RoughPlasticBSDF {
     }
     /// d log f_c / d alpha at (wi, wo) for each channel c (render_bwd's roughplastic roughness
     /// in lanes): alpha enters f = ks F D G1(wi) G1(wo) / (4 cos_i) + g(rho, R_int) t(cos_i)
-    /// t(cos_o) cos_o / (pi eta^2) through D and the G1s (a dual number, as
+    /// t(cos_o) cos_o / (pi eta^2) through D and the G1s (microfacet_dlog_dalpha, as
     /// RoughConductorBSDF::dlog_dalpha) and through the tables, t and R_int, whose
     /// derivatives `state.dtables` holds (as eval_pdf's first order). Zero where f and its
     /// derivative are, infinite where only f is.
@@ -433,10 +428,8 @@ struct RoughPlasticBSDF {
         const Vec3 h = normalize(wi + wo);
         float cos_t, eta_it, eta_ti;
         const float F = fresnel_dielectric(dot(wi, h), b.eta, &cos_t, &eta_it, &eta_ti);
-        const Dual<float> a(RGB<float>(alpha), RGB<float>(1.f));
-        const Dual<float> s = microfacet_D(b.distribution, a, h) * smith_G1(b.distribution, a, wi, h) *
-                              smith_G1(b.distribution, a, wo, h);
-        const float spec = F * s.v[0] / (4.f * wi.z), dspec = F * s.d[0] / (4.f * wi.z);
+        const FactorDlog s = microfacet_dlog_dalpha(b.distribution, alpha, wi, wo, h);
+        const float spec = F * s.value / (4.f * wi.z), dspec = spec * s.dlog;
         const float k = InvPi / (b.eta * b.eta) * wo.z;
         const float t_i = tab.transmittance(wi.z), t_o = tab.transmittance(wo.z);
         const float dt = dtab.transmittance(wi.z) * t_o + t_i * dtab.transmittance(wo.z);

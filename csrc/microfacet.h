@@ -113,6 +113,61 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
            wi.z;
 }
 
+/// A factor of a BSDF's value through which alpha enters it, and its d log / d alpha.
+struct FactorDlog {
+    float value, dlog;
+};
+
+/// smith_G1 in float (Beckmann's from the polynomials, as float renders take it) and its
+/// d log G1 / d alpha in closed form, 0 where G1 is 0 or 1. Beckmann: G1 = 1 / (1 + lambda),
+/// lambda(a) = -erfc(a) / 2 + e^-a^2 / (2 sqrt(pi) a), a = 1 / (alpha tan); d lambda / d a =
+/// -e^-a^2 / (2 sqrt(pi) a^2) and d a / d alpha = -a / alpha, so d log G1 / d alpha =
+/// -G1 e^-a^2 / (2 sqrt(pi) alpha a). GGX: G1 = 2 / (1 + s), s = sqrt(1 + alpha^2 tan^2), so
+/// d log G1 / d alpha = -alpha tan^2 / (s (1 + s)).
+template <MicrofacetType Type>
+RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) {
+    if (dot(v, m) * v.z <= 0.f) return {0.f, 0.f};
+    float xy2 = v.x * v.x + v.y * v.y;
+    if (xy2 == 0.f) return {1.f, 0.f};
+    float tan2 = xy2 / (v.z * v.z);
+    if constexpr (Type == MicrofacetType::Beckmann) {
+        float a = 1.f / (alpha * std::sqrt(tan2));
+        if (a > 9.f) return {1.f, 0.f};
+        float e = exp_poly(-a * a);
+        float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * (2.f * 1.7724538509055159f))));
+        return {g1, -g1 * e / ((2.f * 1.7724538509055159f) * alpha * a)};
+    } else {
+        float s = std::sqrt(1.f + alpha * alpha * tan2);
+        return {2.f / (1.f + s), -alpha * tan2 / (s * (1.f + s))};
+    }
+}
+
+/// D(h) G1(wi, h) G1(wo, h), the factor through which alpha enters a microfacet BSDF's value,
+/// in float (microfacet_D's and smith_G1's float values) and its d log / d alpha in closed
+/// form (the sum of its factors'), 0 where the value is 0. d log D / d alpha: Beckmann's
+/// (2 / alpha) (tan^2 / alpha^2 - 1), GGX's (2 / alpha) (2 xy2 / (xy2 + alpha^2 cos^2) - 1).
+/// The same derivative as a dual number through microfacet_D and smith_G1 (test_autodiff
+/// compares them), in a few float operations (render_bwd's roughness records, per vertex).
+template <MicrofacetType Type>
+RBPT_INLINE FactorDlog microfacet_dlog_dalpha(float alpha, const Vec3 &wi, const Vec3 &wo, const Vec3 &h) {
+    const float d = microfacet_D(Type, alpha, h);
+    if (d == 0.f) return {0.f, 0.f};
+    const FactorDlog gi = smith_G1_dlog<Type>(alpha, wi, h), go = smith_G1_dlog<Type>(alpha, wo, h);
+    const float value = d * gi.value * go.value;
+    if (value == 0.f) return {0.f, 0.f};
+    const float xy2 = h.x * h.x + h.y * h.y, cos2 = h.z * h.z, a2 = alpha * alpha;
+    const float dlog_d = Type == MicrofacetType::Beckmann ? (2.f / alpha) * ((xy2 / cos2) / a2 - 1.f)
+                                                          : (2.f / alpha) * (2.f * xy2 / (xy2 + a2 * cos2) - 1.f);
+    return {value, dlog_d + gi.dlog + go.dlog};
+}
+
+/// microfacet_dlog_dalpha of the distribution `type`.
+RBPT_INLINE FactorDlog microfacet_dlog_dalpha(MicrofacetType type, float alpha, const Vec3 &wi, const Vec3 &wo,
+                                              const Vec3 &h) {
+    return type == MicrofacetType::Beckmann ? microfacet_dlog_dalpha<MicrofacetType::Beckmann>(alpha, wi, wo, h)
+                                            : microfacet_dlog_dalpha<MicrofacetType::GGX>(alpha, wi, wo, h);
+}
+
 /// Inverse error function in float: Giles' single-precision approximation (relative error
 /// below 3e-7, as Dr.Jit's), on log_poly, both of its branches computed and one selected, so
 /// that vectorised loops can call it; -inf and inf at -1 and 1 and beyond.
