@@ -2634,7 +2634,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
         // one at a time. Then the paths that ended hand back their radiance, the rest move up.
         // (Against the shadow rays' tree: Scene::shadow_tree().)
         const BVH &sbvh = scene.shadow_tree();
-        const bool shadow_lanes = (ws.any_sphere_lights && sbvh.flat()) || sbvh.two_phase();
+        bool shadow_lanes = (ws.any_sphere_lights && sbvh.flat()) || sbvh.two_phase();
         const bool shadow_masks = !shadow_lanes && sbvh.one_node();
         alignas(64) int root_mask[B];
         if (shadow_lanes) shadow_rays_in_lanes(b, n, sbvh);
@@ -2657,7 +2657,20 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
 #pragma GCC ivdep
             for (int k = 0; k < n; ++k) test[k] = lit[k] != 0 && root_mask[k] != 0 ? 1 : 0;
         }
-        const int n_shadow = shadow_lanes ? 0 : simd::select_indices(shadow_masks ? test : lit, n, 1, shadow_lanes_list);
+        int n_shadow = shadow_lanes ? 0 : simd::select_indices(shadow_masks ? test : lit, n, 1, shadow_lanes_list);
+        if (shadow_masks && sbvh.flat() && 2 * n_shadow > n_lit) {
+            // Most rays enter a child's box (as where the surfaces they leave are in the shadow
+            // rays' tree: an environment's rays cross a floor): the masks spare few tests, and
+            // the lanes take all, with the same answers. A floor under two spheres in a
+            // constant environment (grad_rough.xml: every ray enters a box, 2.1 on average;
+            // in the cbox, glossy and textured 20-31% enter one): 128 px at 32 spp, one
+            // thread, 89 -> 83 ms; its gradient iteration, 230 -> 221 ms (Beckmann) and
+            // 200 -> 188 (GGX); the other flat scenes unchanged.
+            shadow_rays_in_lanes(b, n, sbvh);
+#pragma GCC ivdep
+            for (int k = 0; k < n; ++k) lit[k] = b.shadow[k] != 0 ? 1 : 0;
+            shadow_lanes = true, n_shadow = 0;
+        }
         for (int j = 0; j < n_shadow; ++j) {
             const int k = shadow_lanes_list[j];
             Ray ray;
