@@ -23,7 +23,7 @@ def test01_grad_error_quick(tmp_path, shared):
     assert len(rows) == 5 * 2  # two spp per kind, ours only
     for r in rows:
         assert r["renderer"] == "torch_rbpt" and r["reference"] == "torch_rbpt"
-        for col in ("time_s", "err", "err_corr", "fom"):
+        for col in ("time_s", "err", "err_corr", "fom", "err2_rse"):
             assert math.isfinite(float(r[col])) and float(r[col]) >= 0, (r["kind"], col, r[col])
         assert float(r["time_s"]) > 0
     for name in ("grad_error.png", "grad_error_reflectance.png", "grad_error_texture.png"):
