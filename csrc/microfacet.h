@@ -65,16 +65,51 @@ RBPT_INLINE float erfc_poly(float z) {
     return t * exp_poly(-z * z + p);
 }
 
+/// A factor of a BSDF's value through which alpha enters it, and its d log / d alpha.
+struct FactorDlog {
+    float value, dlog;
+};
+
+/// Smith's G1(v, m) in float (Beckmann's from the polynomials, as float renders take it: the
+/// value of smith_G1 with VectorMath) and its d log G1 / d alpha in closed form, 0 where G1
+/// is 0 or 1. Beckmann: G1 = 1 / (1 + lambda),
+/// lambda(a) = -erfc(a) / 2 + e^-a^2 / (2 sqrt(pi) a), a = 1 / (alpha tan); d lambda / d a =
+/// -e^-a^2 / (2 sqrt(pi) a^2) and d a / d alpha = -a / alpha, so d log G1 / d alpha =
+/// -G1 e^-a^2 / (2 sqrt(pi) alpha a). GGX: G1 = 2 / (1 + s), s = sqrt(1 + alpha^2 tan^2), so
+/// d log G1 / d alpha = -alpha tan^2 / (s (1 + s)).
+template <MicrofacetType Type>
+RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) {
+    if (dot(v, m) * v.z <= 0.f) return {0.f, 0.f};
+    float xy2 = v.x * v.x + v.y * v.y;
+    if (xy2 == 0.f) return {1.f, 0.f};
+    float tan2 = xy2 / (v.z * v.z);
+    if constexpr (Type == MicrofacetType::Beckmann) {
+        float a = 1.f / (alpha * std::sqrt(tan2));
+        if (a > 9.f) return {1.f, 0.f};
+        float e = exp_poly(-a * a);
+        float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * (2.f * 1.7724538509055159f))));
+        return {g1, -g1 * e / ((2.f * 1.7724538509055159f) * alpha * a)};
+    } else {
+        float s = std::sqrt(1.f + alpha * alpha * tan2);
+        return {2.f / (1.f + s), -alpha * tan2 / (s * (1.f + s))};
+    }
+}
+
 /// Smith's masking function G1(v, m) for direction v and microfacet normal m, of the
 /// distribution `Type` (a template argument for loops over one distribution, which inline it).
-/// With VectorMath, Beckmann's takes erf and exp from erfc_poly and exp_poly (float only):
-/// within 2e-7 of libm's, and vectorisable. (Forced inline, with the polynomials: GCC's size
-/// limits left Beckmann's out of line, and the tables' vectorised loop with it.)
+/// With VectorMath (float only), smith_G1_dlog's value: Beckmann's takes erf and exp from
+/// erfc_poly and exp_poly, within 2e-7 of libm's, and vectorisable. (Forced inline, with the
+/// polynomials: GCC's size limits left Beckmann's out of line, and the tables' vectorised
+/// loop with it.)
 template <MicrofacetType Type, bool VectorMath = false, typename R>
 RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
     using std::erf;
     using std::exp;
     using std::sqrt;
+    if constexpr (VectorMath) {
+        static_assert(std::is_same_v<R, float>, "VectorMath is for float");
+        return smith_G1_dlog<Type>(alpha, v, m).value;
+    }
     if (dot(v, m) * v.z <= 0.f) return R(0.f);  // the back of a microfacet is never seen
     float xy2 = v.x * v.x + v.y * v.y;
     if (xy2 == 0.f) return R(1.f);
@@ -83,13 +118,7 @@ RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
         R a = 1.f / (alpha * std::sqrt(tan2));
         // Beyond a = 9, lambda < 1e-37: G1 is 1 in float and double (and exp would underflow).
         if (detach_real(a) > 9.f) return R(1.f);
-        R lambda;
-        if constexpr (VectorMath) {
-            static_assert(std::is_same_v<R, float>, "VectorMath is for float");
-            lambda = erfc_poly(a) * -0.5f + exp_poly(-a * a) / (a * (2.f * 1.7724538509055159f));
-        } else {
-            lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
-        }
+        const R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
         return 1.f / (1.f + lambda);
     } else {
         return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
@@ -111,35 +140,6 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
     if (wi.z <= 0.f) return R(0.f);
     return smith_G1(type, alpha, wi, m) * std::abs(dot(wi, m)) * microfacet_D(type, alpha, m) /
            wi.z;
-}
-
-/// A factor of a BSDF's value through which alpha enters it, and its d log / d alpha.
-struct FactorDlog {
-    float value, dlog;
-};
-
-/// smith_G1 in float (Beckmann's from the polynomials, as float renders take it) and its
-/// d log G1 / d alpha in closed form, 0 where G1 is 0 or 1. Beckmann: G1 = 1 / (1 + lambda),
-/// lambda(a) = -erfc(a) / 2 + e^-a^2 / (2 sqrt(pi) a), a = 1 / (alpha tan); d lambda / d a =
-/// -e^-a^2 / (2 sqrt(pi) a^2) and d a / d alpha = -a / alpha, so d log G1 / d alpha =
-/// -G1 e^-a^2 / (2 sqrt(pi) alpha a). GGX: G1 = 2 / (1 + s), s = sqrt(1 + alpha^2 tan^2), so
-/// d log G1 / d alpha = -alpha tan^2 / (s (1 + s)).
-template <MicrofacetType Type>
-RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) {
-    if (dot(v, m) * v.z <= 0.f) return {0.f, 0.f};
-    float xy2 = v.x * v.x + v.y * v.y;
-    if (xy2 == 0.f) return {1.f, 0.f};
-    float tan2 = xy2 / (v.z * v.z);
-    if constexpr (Type == MicrofacetType::Beckmann) {
-        float a = 1.f / (alpha * std::sqrt(tan2));
-        if (a > 9.f) return {1.f, 0.f};
-        float e = exp_poly(-a * a);
-        float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * (2.f * 1.7724538509055159f))));
-        return {g1, -g1 * e / ((2.f * 1.7724538509055159f) * alpha * a)};
-    } else {
-        float s = std::sqrt(1.f + alpha * alpha * tan2);
-        return {2.f / (1.f + s), -alpha * tan2 / (s * (1.f + s))};
-    }
 }
 
 /// D(h) G1(wi, h) G1(wo, h), the factor through which alpha enters a microfacet BSDF's value,
