@@ -682,12 +682,14 @@ py::tuple closest_hits(const Scene &scene, torch::Tensor origins, torch::Tensor 
 }
 
 /// Surface interactions of a batch of rays (for tests): (t (N,), shape (N,), p (N, 3),
-/// geometric normal n (N, 3), uv (N, 2)); misses have t = inf, shape -1 and zeros.
+/// geometric normal n (N, 3), uv (N, 2), wi (N, 3) in world space); misses have t = inf,
+/// shape -1 and zeros, but for wi (-d, which an environment emitter looks up).
 py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor directions) {
     int64_t n = ray_batch(origins, directions);
     torch::Tensor t = torch::full({n}, std::numeric_limits<float>::infinity(), torch::kFloat32);
     torch::Tensor shape = torch::full({n}, -1, torch::kInt64);
     torch::Tensor p = torch::zeros({n, 3}), nrm = torch::zeros({n, 3}), uv = torch::zeros({n, 2});
+    torch::Tensor wi = torch::zeros({n, 3});
     const float *o = origins.data_ptr<float>(), *d = directions.data_ptr<float>();
     for (int64_t i = 0; i < n; ++i) {
         Ray ray;
@@ -696,6 +698,8 @@ py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor
         Hit hit;
         scene.bvh.intersect(ray, &hit);
         SurfaceInteraction si = scene.geometry.interaction(ray, hit, /*all_uv=*/true);
+        const Vec3 wi_world = si.valid ? si.to_world(si.wi) : si.wi;
+        for (int k = 0; k < 3; ++k) wi[i][k] = wi_world[k];
         if (!si.valid) continue;
         t[i] = si.t;
         shape[i] = si.shape;
@@ -706,7 +710,7 @@ py::tuple interact_rays(const Scene &scene, torch::Tensor origins, torch::Tensor
         uv[i][0] = si.uv.x;
         uv[i][1] = si.uv.y;
     }
-    return py::make_tuple(t, shape, p, nrm, uv);
+    return py::make_tuple(t, shape, p, nrm, uv, wi);
 }
 
 // ---- Scene construction ------------------------------------------------------------------

@@ -4,9 +4,9 @@
 // A new emitter type is an EmitterType and a case in each function below: the wavefront
 // samples it with emitter_sample() one lane at a time (wavefront.cpp's aside_emitter_stage)
 // and adds the emission rays find with emitter_eval() and emitter_pdf(), as path_li does, so
-// it needs no code there. (An escaped ray's interaction is invalid and carries no direction:
-// an environment whose radiance depends on the direction, as an envmap's, will need these
-// two to take the ray's direction.)
+// it needs no code there. An escaped ray's interaction is invalid and its `wi` is -ray.d in
+// world space (Mitsuba's convention), so an environment whose radiance depends on the
+// direction, as an envmap's, reads it there in emitter_eval() and emitter_pdf().
 #pragma once
 
 #include <optional>
@@ -38,7 +38,8 @@ struct EmitterSample {
 };
 
 /// Radiance leaving an emitter towards a ray that hit it (`si` valid) or escaped (`si`
-/// invalid: the environment). Area lights emit on the front side only.
+/// invalid: the environment, seen along -si.wi, world space). Area lights emit on the front
+/// side only.
 template <typename S, typename Ctx>
 S emitter_eval(const Ctx &ctx, const Emitter &e, const SurfaceInteraction &si) {
     if (e.type == EmitterType::Area && si.wi.z <= 0.f) return S(0.f);
@@ -89,7 +90,8 @@ RBPT_INLINE std::optional<EmitterSample<S>> emitter_sample(const Ctx &ctx, const
 }
 
 /// Solid-angle density with which emitter_sample() produces the direction that reached
-/// emitter `e` at `hit` from `ref` (the hit is invalid for the environment).
+/// emitter `e` at `hit` from `ref` (the hit is invalid for the environment: the direction is
+/// -hit.wi, world space).
 template <typename Ctx>
 float emitter_pdf(const Ctx &ctx, const Emitter &e, const Vec3 &ref, const SurfaceInteraction &hit) {
     float select = 1.f / float(ctx.scene.emitters.size());

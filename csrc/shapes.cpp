@@ -58,7 +58,10 @@ AnalyticHit intersect_disk_or_cylinder(const Ray &ray, const Shape &s, float tmi
 
 SurfaceInteraction Geometry::interaction(const Ray &ray, const Hit &hit, bool all_uv) const {
     SurfaceInteraction si;
-    if (!hit.valid()) return si;
+    if (!hit.valid()) {
+        si.wi = -ray.d;  // escaped: the direction back along the ray, in world space
+        return si;
+    }
     si.valid = true;
     si.t = hit.t;
     si.shape = int(shape_of(hit.prim));

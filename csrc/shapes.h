@@ -82,7 +82,10 @@ struct SurfaceInteraction {
     Vec3 n;        ///< geometric normal (unit, flipped with flip_normals)
     Frame sh_frame;  ///< shading frame around the interpolated normal
     Vec2 uv;       ///< texture coordinates (zero unless the shape needs_uv, see interaction())
-    Vec3 wi;       ///< direction towards the ray origin, in the shading frame
+    /// Direction towards the ray origin, in the shading frame; for a ray that escaped (`valid`
+    /// false), in world space: -ray.d, Mitsuba's convention, the direction an environment
+    /// emitter's emitter_eval() and emitter_pdf() look up.
+    Vec3 wi;
     int shape = -1;
     uint32_t tri = ~0u;      ///< triangle hit (meshes), for mesh attributes
     float b1 = 0.f, b2 = 0.f;  ///< its barycentrics of vertices 1 and 2

@@ -2354,7 +2354,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     auto is_last = [&](int k) { return cfg.max_depth >= 0 && b.depth[k] + 1 >= cfg.max_depth; };
     const Geometry &g = scene.geometry;
     // The `constant` environment's radiance and the density of its emitter samples, for
-    // sky_stage (the same for every escaped ray).
+    // sky_stage (the same for every escaped ray: ws.environment is `constant` alone, and
+    // other environments end their paths in the shade loop below, looked up along the ray).
     Color3f env_radiance(0.f);
     float env_pdf = 0.f;
     if (ws.environment) {
@@ -2439,10 +2440,12 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             b.shade[k] = 0, b.mat[k] = 0, b.record_rough[k] = b.record_alpha[k] = -1;
             const int reads = log ? log->count : 0;
             if (b.prim[k] == ~0u) {
-                // The ray escaped: the environment's emission (if the scene has one) ends it.
+                // The ray escaped: the environment's emission (if the scene has one) ends it,
+                // looked up along the ray (the escaped interaction's world-space wi).
                 if (scene.environment >= 0 && !hidden(k)) {
                     const Emitter &e = scene.emitters[size_t(scene.environment)];
-                    RGB<float> Le = emission_found(ctx, e, SurfaceInteraction(), found_beta(k),
+                    const SurfaceInteraction escaped = g.interaction(load_ray(b, k), Hit{});
+                    RGB<float> Le = emission_found(ctx, e, escaped, found_beta(k),
                                                    b.prev_delta[k] != 0, b.prev_pdf[k],
                                                    Vec3{b.prev_px[k], b.prev_py[k], b.prev_pz[k]});
                     b.Lr[k] += Le[0], b.Lg[k] += Le[1], b.Lb[k] += Le[2];

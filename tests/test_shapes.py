@@ -27,12 +27,15 @@ def load_case(case):
 
 @pytest.mark.parametrize("index", range(9))
 def test01_hits_match_mitsuba(index):
-    """Hit or miss agrees on every ray (silhouettes); p, n and uv agree to float rounding."""
+    """Hit or miss agrees on every ray (silhouettes); p, n and uv agree to float rounding.
+    Every interaction's wi, in world space, is -d: a hit's through its shading frame, an
+    escaped ray's as it is (what an environment emitter looks up)."""
     case = hit_cases()[index]
     scene = load_case(case)
     o = torch.tensor(case["origins"], dtype=torch.float32)
     d = torch.tensor(case["directions"], dtype=torch.float32)
-    t, shape, p, n, uv = tr._C.interact_rays(scene._native, o, d)
+    t, shape, p, n, uv, wi = tr._C.interact_rays(scene._native, o, d)
+    np.testing.assert_allclose(wi.numpy(), -torch.nn.functional.normalize(d, dim=1).numpy(), atol=2e-6)
     hit = np.array([h[0] is not None for h in case["hits"]])
     assert 20 < hit.sum() < len(hit) - 20, "the rays should both hit and miss"
     assert np.array_equal(np.isfinite(t.numpy()), hit)
@@ -155,7 +158,7 @@ def test06_instances_match_mitsuba():
     assert set(case["traverse_keys"]) <= keys, set(case["traverse_keys"]) - keys
     o = torch.tensor(case["origins"], dtype=torch.float32)
     d = torch.tensor(case["directions"], dtype=torch.float32)
-    t, shape, p, n, uv = tr._C.interact_rays(scene._native, o, d)
+    t, shape, p, n, uv, _ = tr._C.interact_rays(scene._native, o, d)
     hit = np.array([h[0] is not None for h in case["hits"]])
     assert 100 < hit.sum() < len(hit) - 100
     assert np.array_equal(np.isfinite(t.numpy()), hit)
