@@ -266,10 +266,12 @@ struct RoughConductorBSDF {
     }
     /// d log(value) / d alpha at (wi, wo): alpha enters the value as one factor common to all
     /// channels, D(h) G1(wi, h) G1(wo, h), whose derivative microfacet_dlog_dalpha gives in
-    /// closed form (render_bwd's roughness derivatives in lanes). Zero where the value is.
-    static float dlog_dalpha(MicrofacetType type, float alpha, const Vec3 &wi, const Vec3 &wo) {
+    /// closed form (render_bwd's roughness derivatives, in SIMD lanes: the distribution a
+    /// template argument). Zero where the value is.
+    template <MicrofacetType Type>
+    RBPT_INLINE static float dlog_dalpha(float alpha, const Vec3 &wi, const Vec3 &wo) {
         if (!(wi.z > 0.f && wo.z > 0.f)) return 0.f;
-        return microfacet_dlog_dalpha(type, alpha, wi, wo, normalize(wi + wo)).dlog;
+        return microfacet_dlog_dalpha<Type>(alpha, wi, wo, normalize(wi + wo)).dlog;
     }
 };
 

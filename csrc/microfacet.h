@@ -19,33 +19,56 @@ namespace rbpt {
 
 enum class MicrofacetType { Beckmann, GGX };
 
-/// Normal distribution D(m) of microfacet normal m (local frame, z up).
+/// Normal distribution D(m) of microfacet normal m (local frame, z up) in float, of the
+/// distribution `Type` (a template argument for loops over lanes, which inline it). Beckmann's
+/// takes exp_poly, as the wavefront's lanes (beckmann_D); below e^-87, where it stops, D is
+/// below the cut-off but at normals within 1e-4 of grazing.
+template <MicrofacetType Type>
+RBPT_INLINE float microfacet_D(float alpha, const Vec3 &m) {
+    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
+    if (m.z <= 0.f) return 0.f;
+    float a2 = alpha * alpha;
+    float result;
+    if constexpr (Type == MicrofacetType::Beckmann) {
+        // (Beyond, exp_poly's argument is replaced, not clamped: vectorised loops compute
+        // both sides of the branch, and e^-87 over the denominator, which exceeds 1 where
+        // alpha > 0.56, underflows, a microcode assist per instruction.)
+        float e = -(xy2 / cos2) / a2;
+        const bool beyond = e < -87.f;
+        result = exp_poly(beyond ? 0.f : e) / (Pi * a2 * (cos2 * cos2));
+        if (beyond) return 0.f;
+    } else {
+        float t = xy2 / a2 + cos2;
+        result = 1.f / (Pi * a2 * t * t);
+    }
+    // As Mitsuba: drop values too small to matter, avoiding underflow downstream.
+    return result * m.z > 1e-20f ? result : 0.f;
+}
+
+/// Normal distribution D(m) of microfacet normal m (local frame, z up): float renders take
+/// the float one above.
 template <typename R>
 R microfacet_D(MicrofacetType type, const R &alpha, const Vec3 &m) {
-    using std::exp;
-    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
-    if (m.z <= 0.f) return R(0.f);
-    R a2 = alpha * alpha;
-    R result;
-    if (type == MicrofacetType::Beckmann) {
-        if constexpr (std::is_same_v<R, float>) {
-            // Float renders: exp_poly, as the wavefront's lanes (beckmann_D); below e^-87,
-            // where it stops, D is below the cut-off but at normals within 1e-4 of grazing.
-            float e = -(xy2 / cos2) / a2;
-            if (e < -87.f) return 0.f;
-            result = exp_poly(e) / (Pi * a2 * (cos2 * cos2));
-        } else {
+    if constexpr (std::is_same_v<R, float>) {
+        return type == MicrofacetType::Beckmann ? microfacet_D<MicrofacetType::Beckmann>(alpha, m)
+                                                : microfacet_D<MicrofacetType::GGX>(alpha, m);
+    } else {
+        using std::exp;
+        float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
+        if (m.z <= 0.f) return R(0.f);
+        R a2 = alpha * alpha;
+        R result;
+        if (type == MicrofacetType::Beckmann) {
             // Beyond e^-150, D is below the cut-off below for any alpha above 1e-10 (and exp
             // would take libm's slow underflow path).
             if (-(xy2 / cos2) / detach_real(a2) < -150.f) return R(0.f);
             result = exp(-(xy2 / cos2) / a2) / (Pi * a2 * (cos2 * cos2));
+        } else {
+            R t = xy2 / a2 + cos2;
+            result = 1.f / (Pi * a2 * t * t);
         }
-    } else {
-        R t = xy2 / a2 + cos2;
-        result = 1.f / (Pi * a2 * t * t);
+        return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
     }
-    // As Mitsuba: drop values too small to matter, avoiding underflow downstream.
-    return detach_real(result) * m.z > 1e-20f ? result : R(0.f);
 }
 
 /// erfc(z) for float z >= 0 (Numerical Recipes' erfcc: fractional error below 1.2e-7, plus the
@@ -84,10 +107,14 @@ RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) 
     if (xy2 == 0.f) return {1.f, 0.f};
     float tan2 = xy2 / (v.z * v.z);
     if constexpr (Type == MicrofacetType::Beckmann) {
-        float a = 1.f / (alpha * std::sqrt(tan2));
-        if (a > 9.f) return {1.f, 0.f};
+        // (Beyond a = 9 the terms are computed at a = 1 and dropped: vectorised loops compute
+        // them anyway, and at larger a they underflow, a microcode assist per instruction.)
+        const float a_v = 1.f / (alpha * std::sqrt(tan2));
+        const bool flat = a_v > 9.f;
+        const float a = flat ? 1.f : a_v;
         float e = exp_poly(-a * a);
         float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * (2.f * 1.7724538509055159f))));
+        if (flat) return {1.f, 0.f};
         return {g1, -g1 * e / ((2.f * 1.7724538509055159f) * alpha * a)};
     } else {
         float s = std::sqrt(1.f + alpha * alpha * tan2);
@@ -147,18 +174,18 @@ R visible_normal_pdf(MicrofacetType type, const R &alpha, const Vec3 &wi, const 
 /// form (the sum of its factors'), 0 where the value is 0. d log D / d alpha: Beckmann's
 /// (2 / alpha) (tan^2 / alpha^2 - 1), GGX's (2 / alpha) (2 xy2 / (xy2 + alpha^2 cos^2) - 1).
 /// The same derivative as a dual number through microfacet_D and smith_G1 (test_autodiff
-/// compares them), in a few float operations (render_bwd's roughness records, per vertex).
+/// compares them), in a few float operations (render_bwd's roughness records), without
+/// branches, so that loops over lanes vectorise (the factors are finite: a zero D makes the
+/// value zero).
 template <MicrofacetType Type>
 RBPT_INLINE FactorDlog microfacet_dlog_dalpha(float alpha, const Vec3 &wi, const Vec3 &wo, const Vec3 &h) {
-    const float d = microfacet_D(Type, alpha, h);
-    if (d == 0.f) return {0.f, 0.f};
+    const float d = microfacet_D<Type>(alpha, h);
     const FactorDlog gi = smith_G1_dlog<Type>(alpha, wi, h), go = smith_G1_dlog<Type>(alpha, wo, h);
     const float value = d * gi.value * go.value;
-    if (value == 0.f) return {0.f, 0.f};
     const float xy2 = h.x * h.x + h.y * h.y, cos2 = h.z * h.z, a2 = alpha * alpha;
     const float dlog_d = Type == MicrofacetType::Beckmann ? (2.f / alpha) * ((xy2 / cos2) / a2 - 1.f)
                                                           : (2.f / alpha) * (2.f * xy2 / (xy2 + a2 * cos2) - 1.f);
-    return {value, dlog_d + gi.dlog + go.dlog};
+    return {value, value != 0.f ? dlog_d + gi.dlog + go.dlog : 0.f};
 }
 
 /// microfacet_dlog_dalpha of the distribution `type`.

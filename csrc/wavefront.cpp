@@ -1424,6 +1424,40 @@ void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws
     else rough_emitter_stage<Terms, false>(b, r, ws, bsdf_mis);
 }
 
+/// d log f / d alpha of a rough conductor (RoughConductorBSDF::dlog_dalpha) at the lanes
+/// packed in `r` whose material `watched` marks (a rough conductor whose roughness is
+/// differentiated), towards their emitter sample (nw*) and their BSDF sample (sw*), into
+/// de[k] and ds[k] (lane k's columns), in SIMD lanes: the backward pass's roughness records.
+/// (Lanes without one of the samples get values computed from whatever direction the batch
+/// holds, which the records do not read.)
+template <MicrofacetType Type>
+void conductor_dlog_stage(const Batch &b, const RoughLanes &r, const WavefrontScene &ws, const int *watched,
+                          float *de, float *ds) {
+    alignas(64) int flag[B], list[B];
+    for (int j = 0; j < r.count; ++j) flag[j] = watched[r.mat[j]];
+    const int count = simd::select_indices(flag, r.count, 1, list);
+    if (count == 0) return;
+    const int padded = simd::pad_indices(list, count);
+    alignas(64) float alpha[B], wix[B], wiy[B], wiz[B], ex[B], ey[B], ez[B], sx[B], sy[B], sz[B], dle[B], dls[B];
+    for (int i = 0; i < padded; ++i) {
+        const int j = list[i], k = r.lanes[j];
+        alpha[i] = ws.materials[size_t(r.mat[j])].alpha;
+        wix[i] = r.wix[j], wiy[i] = r.wiy[j], wiz[i] = r.wiz[j];
+        ex[i] = b.nwx[k], ey[i] = b.nwy[k], ez[i] = b.nwz[k];
+        sx[i] = b.swx[k], sy[i] = b.swy[k], sz[i] = b.swz[k];
+    }
+#pragma GCC ivdep
+    for (int i = 0; i < padded; ++i) {
+        const Vec3 wi{wix[i], wiy[i], wiz[i]}, wo_e{ex[i], ey[i], ez[i]}, wo_s{sx[i], sy[i], sz[i]};
+        dle[i] = RoughConductorBSDF::dlog_dalpha<Type>(alpha[i], wi, wo_e);
+        dls[i] = RoughConductorBSDF::dlog_dalpha<Type>(alpha[i], wi, wo_s);
+    }
+    for (int i = 0; i < count; ++i) {
+        const int k = r.lanes[list[i]];
+        de[k] = dle[i], ds[k] = dls[i];
+    }
+}
+
 /// beckmann_sample_stage's Newton searches, lane j's state and constants in column j.
 struct BeckmannSearches {
     float *tan_i, *normalization, *a, *b, *c, *inv_erf, *u1, *done;
@@ -2163,6 +2197,13 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     // emission's send the path to the tape.
     ParamReadLog *log = record ? ctx.params.log : nullptr;
     if (record) record->tape.assign(size_t(n_samples), 0), record->vertices.clear();
+    // Per material: 1 where it is a rough conductor whose roughness the log watches (its
+    // records' d log f / d alpha: conductor_dlog_stage).
+    std::vector<int> watched_roughness(ws.materials.size(), 0);
+    for (size_t m = 0; log && m < ws.materials.size(); ++m) {
+        const int alpha = scene.bsdfs[m].alpha;
+        watched_roughness[m] = ws.materials[m].lane == WavefrontScene::RoughMirror && alpha >= 0 && log->watched[alpha] ? 1 : 0;
+    }
     // The batch, and the vertices path_vertex() shades while the vector stage runs (70 kB
     // each: no stack frame of their own), in a buffer of the thread's, reached through one
     // pointer read here. (Bound to thread_locals directly, the stages that take the batch
@@ -2566,6 +2607,11 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
             // stage adds the emitter sample's contribution to it). A roughplastic's Term
             // records: d log f / d rho (the shade stage's record) and d log f / d alpha towards
             // the two.
+            // (The differentiated conductor roughnesses' d log f / d alpha in lanes first.)
+            alignas(64) float dlog_e[B], dlog_s[B];
+            if (ggx.count > 0) conductor_dlog_stage<MicrofacetType::GGX>(b, ggx, ws, watched_roughness.data(), dlog_e, dlog_s);
+            if (beckmann.count > 0)
+                conductor_dlog_stage<MicrofacetType::Beckmann>(b, beckmann, ws, watched_roughness.data(), dlog_e, dlog_s);
             for (int k = 0; ws.any_rough && k < n; ++k) {
                 if (!b.shade[k]) continue;
                 const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
@@ -2614,8 +2660,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 }
                 ParamRead read;
                 read.param = bsdf.alpha, read.n = 1, read.weight[0] = 1.f;
-                const float e = b.shadow[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_e) : 0.f;
-                const float s = b.alive[k] ? RoughConductorBSDF::dlog_dalpha(bsdf.distribution, m.alpha, wi, wo_s) : 0.f;
+                const float e = b.shadow[k] ? dlog_e[k] : 0.f, s = b.alive[k] ? dlog_s[k] : 0.f;
                 if (!std::isfinite(e) || !std::isfinite(s)) record->tape[size_t(b.seq[k])] = 1;
                 b.record_rough[k] = int(record->vertices.size());
                 WavefrontVertex &v = record->add(b.seq[k], WavefrontVertex::Roughness, b.Lr[k], b.Lg[k], b.Lb[k], 0.f, 0.f, 0.f, read);

@@ -244,9 +244,9 @@ inline bool linear_in_inputs(WavefrontScene::Lane lane) {
 /// sample through f(wo_e) and everything after through the BSDF sample's weight
 /// f(wo_s) / pdf (the pdf detached), both as one factor common to the channels: with C_e the
 /// emitter sample's contribution, dL/dalpha = C_e dlog f(wo_e) + (L - L_before - C_e)
-/// dlog f(wo_s), dlog = d log f / d alpha (RoughConductorBSDF::dlog_dalpha, through libm's
-/// exp and erfc for Beckmann, as the tape, where the float lanes' values take exp_poly and
-/// erfc_poly: the two differ by float rounding).
+/// dlog f(wo_s), dlog = d log f / d alpha (RoughConductorBSDF::dlog_dalpha, in closed form on
+/// the float lanes' exp_poly and erfc_poly for Beckmann, where the tape takes libm's exp and
+/// erf: the two differ by float rounding; conductor_dlog_stage, in SIMD lanes).
 ///
 /// A roughplastic's diffuse reflectance rho is a factor of one of the two terms of its value,
 /// f = ks spec + g(rho) base, so it is not one factor of the path's throughput; but like the
