@@ -20,9 +20,9 @@ namespace rbpt {
 enum class MicrofacetType { Beckmann, GGX };
 
 /// Normal distribution D(m) of microfacet normal m (local frame, z up) in float, of the
-/// distribution `Type` (a template argument for loops over lanes, which inline it). Beckmann's
-/// takes exp_poly, as the wavefront's lanes (beckmann_D); below e^-87, where it stops, D is
-/// below the cut-off but at normals within 1e-4 of grazing.
+/// distribution `Type` (a template argument for loops over lanes, which inline it: the
+/// wavefront's rough lanes). Beckmann's takes exp_poly; below e^-87, where it stops, D is below
+/// the cut-off but at normals within 1e-4 of grazing.
 template <MicrofacetType Type>
 RBPT_INLINE float microfacet_D(float alpha, const Vec3 &m) {
     float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
@@ -127,7 +127,7 @@ RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) 
 /// With VectorMath (float only), smith_G1_dlog's value: Beckmann's takes erf and exp from
 /// erfc_poly and exp_poly, within 2e-7 of libm's, and vectorisable. (Forced inline, with the
 /// polynomials: GCC's size limits left Beckmann's out of line, and the tables' vectorised
-/// loop with it.)
+/// loop with it. The wavefront's rough lanes take it too.)
 template <MicrofacetType Type, bool VectorMath = false, typename R>
 RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
     using std::erf;

@@ -466,28 +466,10 @@ RBPT_INLINE void store_sampler(Batch &b, int k, const Sampler &sampler, Sampler:
     if (parts) parts[b.seq[k]] = sampler.parts();
 }
 
-// ---- The rough BSDFs in lanes: GGX's microfacet_D, smith_G1 and visible-normal sampling and
-// roughplastic's tables (the Fresnel term is bsdfs.h's own), written with selects where the scalar code
-// returns early: the same operations as microfacet.h's and bsdfs.h's, so the same bits.
-
-/// microfacet_D for GGX.
-RBPT_INLINE float ggx_D(float alpha, const Vec3 &m) {
-    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
-    float a2 = alpha * alpha;
-    float t = xy2 / a2 + cos2;
-    float result = 1.f / (Pi * a2 * t * t);
-    result = result * m.z > 1e-20f ? result : 0.f;
-    return m.z <= 0.f ? 0.f : result;
-}
-
-/// smith_G1 for GGX.
-RBPT_INLINE float ggx_G1(float alpha, const Vec3 &v, const Vec3 &m) {
-    float xy2 = v.x * v.x + v.y * v.y;
-    float tan2 = xy2 / (v.z * v.z);
-    float g = 2.f / (1.f + std::sqrt(1.f + alpha * alpha * tan2));
-    g = xy2 == 0.f ? 1.f : g;
-    return dot(v, m) * v.z <= 0.f ? 0.f : g;
-}
+// ---- The rough BSDFs in lanes: GGX's visible-normal sampling and roughplastic's tables
+// (microfacet_D and smith_G1 are microfacet.h's float ones, the Fresnel term is bsdfs.h's own),
+// written with selects where the scalar code returns early: the same operations as
+// microfacet.h's and bsdfs.h's, so the same bits.
 
 /// sample_visible_normal for GGX (VisibleNormalSampler's constructor, part_x, part_y and
 /// normal).
@@ -505,29 +487,6 @@ RBPT_INLINE Vec3 ggx_visible_normal(float alpha, const Vec3 &wi, Vec2 u) {
     p2 = (1.f - s) * safe_sqrt(1.f - p1 * p1) + s * p2;
     Vec3 nh = t1 * p1 + t2 * p2 + w * safe_sqrt(1.f - p1 * p1 - p2 * p2);
     return normalize(Vec3{alpha * nh.x, alpha * nh.y, std::max(0.f, nh.z)});
-}
-
-/// microfacet_D for Beckmann (float renders': exp_poly).
-RBPT_INLINE float beckmann_D(float alpha, const Vec3 &m) {
-    float cos2 = m.z * m.z, xy2 = m.x * m.x + m.y * m.y;
-    float a2 = alpha * alpha;
-    float e = -(xy2 / cos2) / a2;
-    float result = exp_poly(e) / (Pi * a2 * (cos2 * cos2));
-    result = e < -87.f ? 0.f : result;
-    result = result * m.z > 1e-20f ? result : 0.f;
-    return m.z <= 0.f ? 0.f : result;
-}
-
-/// smith_G1 for Beckmann (float renders': erfc_poly and exp_poly).
-RBPT_INLINE float beckmann_G1(float alpha, const Vec3 &v, const Vec3 &m) {
-    float xy2 = v.x * v.x + v.y * v.y;
-    float tan2 = xy2 / (v.z * v.z);
-    float a = 1.f / (alpha * std::sqrt(tan2));
-    float lambda = erfc_poly(a) * -0.5f + exp_poly(-a * a) / (a * (2.f * 1.7724538509055159f));
-    float g = 1.f / (1.f + lambda);
-    g = a > 9.f ? 1.f : g;
-    g = xy2 == 0.f ? 1.f : g;
-    return dot(v, m) * v.z <= 0.f ? 0.f : g;
 }
 
 /// RoughPlasticTables::transmittance of the table at `table`.
@@ -567,7 +526,8 @@ struct MicrofacetTerms {
 };
 RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Vec3 &wo) {
     Vec3 h = normalize(wi + wo);
-    return {beckmann_D(alpha, h), beckmann_G1(alpha, wi, h), beckmann_G1(alpha, wo, h)};
+    constexpr MicrofacetType Beckmann = MicrofacetType::Beckmann;
+    return {microfacet_D<Beckmann>(alpha, h), smith_G1<Beckmann, true>(alpha, wi, h), smith_G1<Beckmann, true>(alpha, wo, h)};
 }
 
 /// A rough BSDF's value and density towards wo, with the microfacet terms Terms: GGX's
@@ -589,7 +549,8 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const Microf
     } else if constexpr (Terms == Microfacet::StoredOnly) {
         D = stored.D, g_i = stored.g_i, g = stored.g;
     } else {
-        D = ggx_D(m.alpha, h), g_i = ggx_G1(m.alpha, wi, h), g = ggx_G1(m.alpha, wo, h);
+        constexpr MicrofacetType GGX = MicrofacetType::GGX;
+        D = microfacet_D<GGX>(m.alpha, h), g_i = smith_G1<GGX, true>(m.alpha, wi, h), g = smith_G1<GGX, true>(m.alpha, wo, h);
     }
     float l = D * g_i / (4.f * wi.z);
     // The conductor.
