@@ -19,6 +19,9 @@ namespace rbpt {
 
 enum class MicrofacetType { Beckmann, GGX };
 
+/// 2 sqrt(pi) in float, the denominator of Beckmann's lambda and of its derivative.
+constexpr float TwoSqrtPi = 2.f * 1.7724538509055159f;
+
 /// Normal distribution D(m) of microfacet normal m (local frame, z up) in float, of the
 /// distribution `Type` (a template argument for loops over lanes, which inline it: the
 /// wavefront's rough lanes). Beckmann's takes exp_poly; below e^-87, where it stops, D is below
@@ -113,9 +116,9 @@ RBPT_INLINE FactorDlog smith_G1_dlog(float alpha, const Vec3 &v, const Vec3 &m) 
         const bool flat = a_v > 9.f;
         const float a = flat ? 1.f : a_v;
         float e = exp_poly(-a * a);
-        float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * (2.f * 1.7724538509055159f))));
+        float g1 = 1.f / (1.f + (erfc_poly(a) * -0.5f + e / (a * TwoSqrtPi)));
         if (flat) return {1.f, 0.f};
-        return {g1, -g1 * e / ((2.f * 1.7724538509055159f) * alpha * a)};
+        return {g1, -g1 * e / (TwoSqrtPi * alpha * a)};
     } else {
         float s = std::sqrt(1.f + alpha * alpha * tan2);
         return {2.f / (1.f + s), -alpha * tan2 / (s * (1.f + s))};
@@ -145,7 +148,7 @@ RBPT_INLINE R smith_G1(const R &alpha, const Vec3 &v, const Vec3 &m) {
         R a = 1.f / (alpha * std::sqrt(tan2));
         // Beyond a = 9, lambda < 1e-37: G1 is 1 in float and double (and exp would underflow).
         if (detach_real(a) > 9.f) return R(1.f);
-        const R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * (2.f * 1.7724538509055159f));
+        const R lambda = (erf(a) - 1.f) * 0.5f + exp(-a * a) / (a * TwoSqrtPi);
         return 1.f / (1.f + lambda);
     } else {
         return 2.f / (1.f + sqrt(1.f + alpha * alpha * tan2));
