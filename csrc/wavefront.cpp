@@ -2160,8 +2160,8 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
     if (record) record->tape.assign(size_t(n_samples), 0), record->vertices.clear();
     // Per material: 1 where it is a rough conductor whose roughness the log watches (its
     // records' d log f / d alpha: conductor_dlog_stage).
-    std::vector<int> watched_roughness(ws.materials.size(), 0);
-    for (size_t m = 0; log && m < ws.materials.size(); ++m) {
+    std::vector<int> watched_roughness(log ? ws.materials.size() : 0, 0);
+    for (size_t m = 0; m < watched_roughness.size(); ++m) {
         const int alpha = scene.bsdfs[m].alpha;
         watched_roughness[m] = ws.materials[m].lane == WavefrontScene::RoughMirror && alpha >= 0 && log->watched[alpha] ? 1 : 0;
     }
@@ -2579,7 +2579,7 @@ void trace_wavefront(const RenderContext<RGB<float>> &ctx, const WavefrontScene 
                 const BSDF &bsdf = scene.bsdfs[size_t(b.mat[k])];
                 const bool plastic = m.lane == WavefrontScene::RoughPlastic;
                 const bool rho_term = plastic && b.record_rough[k] >= 0, alpha_term = plastic && log->watched[bsdf.alpha];
-                if (!rho_term && !alpha_term && (m.lane != WavefrontScene::RoughMirror || !log->watched[bsdf.alpha])) continue;
+                if (!rho_term && !alpha_term && !watched_roughness[size_t(b.mat[k])]) continue;
                 Vec3 wi{b.wix[k], b.wiy[k], b.wiz[k]};
                 wi.z = m.twosided != 0 && wi.z < 0.f ? wi.z * -1.f : wi.z;  // (the vertex stage's flip)
                 const Vec3 wo_e{b.nwx[k], b.nwy[k], b.nwz[k]}, wo_s{b.swx[k], b.swy[k], b.swz[k]};
