@@ -532,13 +532,13 @@ RBPT_INLINE MicrofacetTerms beckmann_terms(float alpha, const Vec3 &wi, const Ve
 
 /// A rough BSDF's value and density towards wo, with the microfacet terms Terms: GGX's
 /// (Microfacet::GGX), Beckmann's (Microfacet::Beckmann), or `stored` (Microfacet::StoredOnly:
-/// beckmann_sample_stage's, towards its sampled direction).
+/// beckmann_sample_stage's, towards its sampled direction). Without Plastic (no lane of the
+/// list is a roughplastic: RoughLanes::plastic) the conductor's alone.
 enum class Microfacet { GGX, StoredOnly, Beckmann };
-template <Microfacet Terms>
+template <Microfacet Terms, bool Plastic>
 RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const MicrofacetTerms &stored,
                                  const float *tables, const Vec3 &wi, const Vec3 &wo, const float a[3],
                                  const float s[3]) {
-    const float plastic = m.plastic;
     float up = wi.z > 0.f ? 1.f : 0.f;
     up = wo.z > 0.f ? up : 0.f;
     Vec3 h = normalize(wi + wo);
@@ -558,21 +558,24 @@ RBPT_INLINE RoughEval rough_eval(const WavefrontScene::Material &m, const Microf
     float facing = dot(wi, h) > 0.f ? 1.f : 0.f;
     facing = dot(wo, h) > 0.f ? facing : 0.f;
     RoughEval e{a[0] * lg, a[1] * lg, a[2] * lg, facing != 0.f ? l : 0.f};
-    // The plastic: its specular lobe, and the diffuse base seen through the rough interface.
-    float cos_t, eta_it, eta_ti;
-    float spec = fresnel_dielectric(dot(wi, h), m.eta, &cos_t, &eta_it, &eta_ti) * l * g;
-    float t_i = transmittance(tables, m.table, wi.z), t_o = transmittance(tables, m.table, wo.z);
-    float r_int = m.internal_reflectance;
-    float base = t_i * t_o * (InvPi / (m.eta * m.eta) * wo.z);
-    float d[3];
-    for (int c = 0; c < 3; ++c) {
-        float diff = m.nonlinear != 0 ? a[c] / (1.f - a[c] * r_int) : a[c] / (1.f - r_int);
-        d[c] = s[c] * spec + diff * base;
+    if constexpr (Plastic) {
+        // The plastic: its specular lobe, and the diffuse base seen through the rough interface.
+        const float plastic = m.plastic;
+        float cos_t, eta_it, eta_ti;
+        float spec = fresnel_dielectric(dot(wi, h), m.eta, &cos_t, &eta_it, &eta_ti) * l * g;
+        float t_i = transmittance(tables, m.table, wi.z), t_o = transmittance(tables, m.table, wo.z);
+        float r_int = m.internal_reflectance;
+        float base = t_i * t_o * (InvPi / (m.eta * m.eta) * wo.z);
+        float d[3];
+        for (int c = 0; c < 3; ++c) {
+            float diff = m.nonlinear != 0 ? a[c] / (1.f - a[c] * r_int) : a[c] / (1.f - r_int);
+            d[c] = s[c] * spec + diff * base;
+        }
+        float ps = specular_probability(m, t_i);
+        float density = ps * l + (1.f - ps) * warp::square_to_cosine_hemisphere_pdf(wo);
+        e.r = plastic != 0.f ? d[0] : e.r, e.g = plastic != 0.f ? d[1] : e.g, e.b = plastic != 0.f ? d[2] : e.b;
+        e.pdf = plastic != 0.f ? density : e.pdf;
     }
-    float ps = specular_probability(m, t_i);
-    float density = ps * l + (1.f - ps) * warp::square_to_cosine_hemisphere_pdf(wo);
-    e.r = plastic != 0.f ? d[0] : e.r, e.g = plastic != 0.f ? d[1] : e.g, e.b = plastic != 0.f ? d[2] : e.b;
-    e.pdf = plastic != 0.f ? density : e.pdf;
     // Both: nothing unless wi and wo are above the surface.
     e.r = up != 0.f ? e.r : 0.f, e.g = up != 0.f ? e.g : 0.f, e.b = up != 0.f ? e.b : 0.f;
     e.pdf = up != 0.f ? e.pdf : 0.f;
@@ -847,9 +850,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // The mirror's and the dielectric's reflection.
         Vec3 reflected{wi.x * -1.f, wi.y * -1.f, wi.z};
         // The dielectric: reflection or refraction, chosen by u1 against the Fresnel
-        // reflectance (fresnel_dielectric, whose early returns GCC turns into selects).
-        float cos_t, eta_it, eta_ti;
-        float r = fresnel_dielectric(wi.z, m.eta, &cos_t, &eta_it, &eta_ti);
+        // reflectance (fresnel_dielectric, whose early returns GCC turns into selects). Without
+        // Delta, a reflectance of 1: no lane refracts, and GCC drops what follows from it.
+        float cos_t = 0.f, eta_it = 1.f, eta_ti = 1.f, r = 1.f;
+        if constexpr (Delta) r = fresnel_dielectric(wi.z, m.eta, &cos_t, &eta_it, &eta_ti);
         float reflects = u1 <= r ? 1.f : 0.f;
         Vec3 refracted{(eta_ti * -1.f) * wi.x, (eta_ti * -1.f) * wi.y, cos_t};
         float glass_pdf = reflects != 0.f ? r : 1.f - r;
@@ -1236,6 +1240,7 @@ int list_rough_lanes(const Batch &b, int n, const WavefrontScene &ws, float beck
 /// vertex stage samples in (twosided's flip applied).
 struct RoughLanes {
     int count = 0, padded = 0;  ///< the lanes, and the list's length padded to whole vectors
+    bool plastic = true;        ///< whether some are roughplastics (else all are conductors)
     alignas(64) int lanes[B], mat[B];
     alignas(64) float ar[B], ag[B], ab[B], tr[B], tg[B], tb[B], wix[B], wiy[B], wiz[B], br[B], bg[B], bb[B];
 };
@@ -1244,9 +1249,11 @@ struct RoughLanes {
 /// vectors first), and their BSDF sample's numbers (draw_stage's) into u1s, ux and uy.
 void pack_rough_lanes(const Batch &b, const WavefrontScene &ws, RoughLanes &r, float *u1s, float *ux, float *uy) {
     r.padded = simd::pad_indices(r.lanes, r.count);
+    r.plastic = false;
     for (int j = 0; j < r.padded; ++j) {
         const int k = r.lanes[j];
         r.mat[j] = b.mat[k];
+        r.plastic = r.plastic || ws.materials[size_t(b.mat[k])].plastic != 0.f;
         r.ar[j] = b.ar[k], r.ag[j] = b.ag[k], r.ab[j] = b.ab[k], r.tr[j] = b.tr[k], r.tg[j] = b.tg[k], r.tb[j] = b.tb[k];
         // (The flip as a product with -1, as the vertex stage's: exact.)
         const float side = ws.materials[size_t(b.mat[k])].twosided != 0 && b.wiz[k] < 0.f ? -1.f : 1.f;
@@ -1262,8 +1269,8 @@ void pack_rough_lanes(const Batch &b, const WavefrontScene &ws, RoughLanes &r, f
 /// D, g_i, g_o) or, for a roughplastic where u1 picks its base, the cosine-weighted
 /// direction; its density (zero where wi is below the surface) and its weight value /
 /// density, into the swx.., rpdf and rw* columns. With Defer, the direction alone, density
-/// and weight 1 (see finish_deferred_samples).
-template <Microfacet Terms, bool Defer = false>
+/// and weight 1 (see finish_deferred_samples). Plastic: RoughLanes::plastic.
+template <Microfacet Terms, bool Defer, bool Plastic>
 void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, const float *u1s, const float *ux,
                    const float *uy, const float *mx, const float *my, const float *mz, const float *D,
                    const float *g_i, const float *g_o) {
@@ -1289,13 +1296,16 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
             normal = ggx_visible_normal(m.alpha, wi, u2);
         }
         const Vec3 specular = reflect(wi, normal);
-        const float pick_base = u1s[j] < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : m.plastic;
-        const Vec3 wo = select(pick_base != 0.f, cos_wo, specular);
+        Vec3 wo = specular;
+        if constexpr (Plastic) {
+            const float pick_base = u1s[j] < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : m.plastic;
+            wo = select(pick_base != 0.f, cos_wo, specular);
+        }
         ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
         if constexpr (Defer) {
             pdf[j] = 1.f, wr[j] = wg[j] = wb[j] = 1.f;
         } else {
-            const RoughWeight w = sample_weight(rough_eval<Terms>(m, terms, tables, wi, wo, a, s), wi.z);
+            const RoughWeight w = sample_weight(rough_eval<Terms, Plastic>(m, terms, tables, wi, wo, a, s), wi.z);
             pdf[j] = w.pdf, wr[j] = w.r, wg[j] = w.g, wb[j] = w.b;
         }
     }
@@ -1311,15 +1321,19 @@ template <bool Defer>
 void ggx_sample_stage(Batch &b, RoughLanes &r, const WavefrontScene &ws) {
     alignas(64) float u1s[B], ux[B], uy[B];
     pack_rough_lanes(b, ws, r, u1s, ux, uy);
-    rough_samples<Microfacet::GGX, Defer>(b, r, ws, u1s, ux, uy, nullptr, nullptr, nullptr, nullptr, nullptr, nullptr);
+    with_flags([&](auto plastic) {
+        rough_samples<Microfacet::GGX, Defer, decltype(plastic)::value>(b, r, ws, u1s, ux, uy, nullptr, nullptr, nullptr,
+                                                                        nullptr, nullptr, nullptr);
+    }, r.plastic);
 }
 
 /// The emitter samples of the rough lanes listed in `r` (by their sample stage), after the
 /// vector stage evaluated them as a diffuse BSDF's: the BSDF towards each (rough_eval with
 /// Terms GGX or Beckmann, as the scalar path evaluates it), its MIS weight and contribution,
 /// and whether it stands (the vector stage's tests and f not null), into the c* and shadow
-/// columns. Aside: whether some lights are sampled aside (their samples' weights and deltas).
-template <Microfacet Terms, bool Aside>
+/// columns. Aside: whether some lights are sampled aside (their samples' weights and deltas);
+/// Plastic: RoughLanes::plastic.
+template <Microfacet Terms, bool Aside, bool Plastic>
 void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws, float bsdf_mis) {
     static_assert(Terms == Microfacet::GGX || Terms == Microfacet::Beckmann, "a distribution's own terms");
     const WavefrontScene::Material *mats = ws.materials.data();
@@ -1352,7 +1366,7 @@ void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
         const Vec3 wi{wix[j], wiy[j], wiz[j]};
         const Vec3 wo{nwx[j], nwy[j], nwz[j]};
-        RoughEval e = rough_eval<Terms>(m, MicrofacetTerms{}, tables, wi, wo, a, s);
+        RoughEval e = rough_eval<Terms, Plastic>(m, MicrofacetTerms{}, tables, wi, wo, a, s);
         float f_sum = std::abs(e.r) + std::abs(e.g) + std::abs(e.b);
         sampled[j] = f_sum != 0.f ? sampled0[j] : 0.f;
         // (The emitter sample's weight and MIS weight, as the vector stage computed them.)
@@ -1378,11 +1392,13 @@ void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws
     }
 }
 
-/// rough_emitter_stage for a scene with or without lights sampled aside.
+/// rough_emitter_stage for a scene with or without lights sampled aside, and lanes with or
+/// without roughplastics.
 template <Microfacet Terms>
 void rough_emitter_stage(Batch &b, const RoughLanes &r, const WavefrontScene &ws, float bsdf_mis) {
-    if (ws.any_aside_lights) rough_emitter_stage<Terms, true>(b, r, ws, bsdf_mis);
-    else rough_emitter_stage<Terms, false>(b, r, ws, bsdf_mis);
+    with_flags([&](auto aside, auto plastic) {
+        rough_emitter_stage<Terms, decltype(aside)::value, decltype(plastic)::value>(b, r, ws, bsdf_mis);
+    }, ws.any_aside_lights, r.plastic);
 }
 
 /// d log f / d alpha of a rough conductor (RoughConductorBSDF::dlog_dalpha) at the lanes
@@ -1472,15 +1488,20 @@ void beckmann_sample_stage(Batch &b, const WavefrontScene &ws, RoughLanes &r) {
     // alpha, whether the sample is the plastic's diffuse base (no normal; rough_samples()'
     // choice of lobe) and whether there is a sample (wi above the surface).
     alignas(64) float alpha[B], base[B], below[B];
+    with_flags([&](auto plastic) {
 #pragma GCC ivdep
-    for (int j = 0; j < m; ++j) {
-        const WavefrontScene::Material &material = mats[mat[j]];
-        const float t_i = transmittance(tables, material.table, wz[j]);
-        const float specular = u1s[j] < specular_probability(material, t_i) ? 1.f : 0.f;
-        alpha[j] = material.alpha;
-        base[j] = material.plastic != 0.f && specular == 0.f ? 1.f : 0.f;
-        below[j] = wz[j] > 0.f ? 0.f : 1.f;
-    }
+        for (int j = 0; j < m; ++j) {
+            const WavefrontScene::Material &material = mats[mat[j]];
+            alpha[j] = material.alpha;
+            base[j] = 0.f;
+            if constexpr (decltype(plastic)::value) {
+                const float t_i = transmittance(tables, material.table, wz[j]);
+                const float specular = u1s[j] < specular_probability(material, t_i) ? 1.f : 0.f;
+                base[j] = material.plastic != 0.f && specular == 0.f ? 1.f : 0.f;
+            }
+            below[j] = wz[j] > 0.f ? 0.f : 1.f;
+        }
+    }, r.plastic);
     // The slopes' constants and the searches' start (BeckmannSlopes; polar slopes, the base's
     // lanes and those without a sample search nothing).
     alignas(64) float cos_phi[B], sin_phi[B], polar[B], tan_i[B], normalization[B];
@@ -1524,7 +1545,9 @@ void beckmann_sample_stage(Batch &b, const WavefrontScene &ws, RoughLanes &r) {
             D[j] = t.D, g_i[j] = t.g_i, g_o[j] = t.g;
         }
     }
-    rough_samples<Microfacet::StoredOnly, Defer>(b, r, ws, u1s, ux, uy, nx, ny, nz, D, g_i, g_o);
+    with_flags([&](auto plastic) {
+        rough_samples<Microfacet::StoredOnly, Defer, decltype(plastic)::value>(b, r, ws, u1s, ux, uy, nx, ny, nz, D, g_i, g_o);
+    }, r.plastic);
 }
 
 /// Copy what the next bounce reads of lane `from` of `a` to lane `to` of `b`. (compact_lanes()
@@ -2124,16 +2147,19 @@ void finish_deferred_samples(Batch &b, const RoughLanes &r, const WavefrontScene
     const WavefrontScene::Material *mats = ws.materials.data();
     const float *tables = ws.tables.data();
     alignas(64) float pdf[B], wr[B], wg[B], wb[B];
+    with_flags([&](auto plastic) {
 #pragma GCC ivdep
-    for (int i = 0; i < padded; ++i) {
-        const WavefrontScene::Material &material = mats[mat[i]];
-        const float a[3] = {ar[i], ag[i], ab[i]}, s[3] = {tr[i], tg[i], tb[i]};
-        const Vec3 wi{wix[i], wiy[i], wiz[i]}, wo{wox[i], woy[i], woz[i]};
-        MicrofacetTerms terms{};
-        if constexpr (Terms == Microfacet::StoredOnly) terms = beckmann_terms(material.alpha, wi, wo);
-        const RoughWeight w = sample_weight(rough_eval<Terms>(material, terms, tables, wi, wo, a, s), wi.z);
-        pdf[i] = w.pdf, wr[i] = w.r, wg[i] = w.g, wb[i] = w.b;
-    }
+        for (int i = 0; i < padded; ++i) {
+            const WavefrontScene::Material &material = mats[mat[i]];
+            const float a[3] = {ar[i], ag[i], ab[i]}, s[3] = {tr[i], tg[i], tb[i]};
+            const Vec3 wi{wix[i], wiy[i], wiz[i]}, wo{wox[i], woy[i], woz[i]};
+            MicrofacetTerms terms{};
+            if constexpr (Terms == Microfacet::StoredOnly) terms = beckmann_terms(material.alpha, wi, wo);
+            const RoughWeight w =
+                sample_weight(rough_eval<Terms, decltype(plastic)::value>(material, terms, tables, wi, wo, a, s), wi.z);
+            pdf[i] = w.pdf, wr[i] = w.r, wg[i] = w.g, wb[i] = w.b;
+        }
+    }, r.plastic);
     // What the vertex stage would have set with them.
     for (int i = 0; i < m; ++i) {
         const int k = r.lanes[list[i]];
