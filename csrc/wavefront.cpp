@@ -651,9 +651,11 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// the rough stages took before (this stage takes them from the sw*, rpdf and rw* columns) and whose
 /// emitter samples rough_emitter_stage evaluates after (this stage evaluates them as a
 /// diffuse BSDF's and keeps what that stage needs); NonMesh: whether some emitters have no
-/// mesh (the `constant` environment, spheres: 1), or none has (2, with several lights). The
-/// code of the BSDFs and emitters a scene does not have is left out.
-template <bool OneLight, bool Delta, bool Rough, int NonMesh>
+/// mesh (the `constant` environment, spheres: 1), or none has (2, with several lights); Shapes:
+/// whether some of those are spheres or lights sampled aside (without, the environment alone:
+/// an environment beside mesh lights skips the spheres' cones and the aside samples' columns).
+/// The code of the BSDFs and emitters a scene does not have is left out.
+template <bool OneLight, bool Delta, bool Rough, int NonMesh, bool Shapes = true>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
@@ -706,7 +708,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // subtends, the Taylor expansion for small cones, and the cone's density.
         Vec3 cone_d;
         float outside = 0.f, cone_pdf = 0.f;
-        if constexpr (NonMesh) {
+        if constexpr (NonMesh && Shapes) {
             Vec3 dc = Vec3{light.cx, light.cy, light.cz} - p;
             float dc2 = squared_norm(dc);
             outside = dc2 > light.outside_radius2 ? 1.f : 0.f;
@@ -737,7 +739,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         }
         Vec3 ln = select(light.has_normals, vn, face_n);
         ln = select(light.flip_normals, -ln, ln);
-        if constexpr (NonMesh) {
+        if constexpr (NonMesh && Shapes) {
             // A sphere's point (its normal the direction from the centre, times the sign; seen
             // from inside, its density converts with the unsigned one, as a mesh's face normal).
             Vec3 sd = select(outside != 0.f, cone_d, env_d);
@@ -752,7 +754,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float abs_cos = std::abs(dot(face_n, d));
         float area_pdf = dist2 / (light.area * abs_cos);
         float pdf = abs_cos > 0.f ? area_pdf : 0.f;
-        if constexpr (NonMesh) pdf = light.sphere * outside != 0.f ? cone_pdf : pdf;  // (flags: 1 or 0)
+        if constexpr (NonMesh && Shapes) pdf = light.sphere * outside != 0.f ? cone_pdf : pdf;  // (flags: 1 or 0)
         // A sample: emitter_sample's test pdf > 0 (sample_direction's pdf is zero at distance
         // zero) and d facing the light's front.
         float sampled = dist != 0.f ? smooth : 0.f;
@@ -766,22 +768,25 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             d = select(env != 0.f, env_d, d);
             pdf = env != 0.f ? InvFourPi : pdf;
             sampled = env != 0.f ? smooth : sampled;
-            // A light sampled aside: emitter_sample()'s sample (aside_emitter_stage).
-            const float aside = light.aside;
-            d = select(aside != 0.f, Vec3{b.adx[k], b.ady[k], b.adz[k]}, d);
-            lp = select(aside != 0.f, Vec3{b.apx[k], b.apy[k], b.apz[k]}, lp);
-            sampled = aside != 0.f ? b.aok[k] * smooth : sampled;  // (both 1 or 0)
-            to_infinity = aside != 0.f ? b.ainf[k] : env;
+            to_infinity = env;
+            if constexpr (Shapes) {
+                // A light sampled aside: emitter_sample()'s sample (aside_emitter_stage).
+                const float aside = light.aside;
+                d = select(aside != 0.f, Vec3{b.adx[k], b.ady[k], b.adz[k]}, d);
+                lp = select(aside != 0.f, Vec3{b.apx[k], b.apy[k], b.apz[k]}, lp);
+                sampled = aside != 0.f ? b.aok[k] * smooth : sampled;  // (both 1 or 0)
+                to_infinity = aside != 0.f ? b.ainf[k] : env;
+            }
         }
         float es_pdf = pdf / float(n_lights);
-        if constexpr (NonMesh) es_pdf = light.aside != 0.f ? b.apdf[k] : es_pdf;
+        if constexpr (NonMesh && Shapes) es_pdf = light.aside != 0.f ? b.apdf[k] : es_pdf;
         float inv_pdf = 1.f / es_pdf;
         float ew_r = light.radiance.v[0] * inv_pdf, ew_g = light.radiance.v[1] * inv_pdf;
         float ew_b = light.radiance.v[2] * inv_pdf;
         // Not null (a float flag taken before the weight's selects: a comparison of selected
         // values stops the vectoriser).
         float lit = (ew_r != 0.f) | (ew_g != 0.f) | (ew_b != 0.f) ? 1.f : 0.f;
-        if constexpr (NonMesh) {
+        if constexpr (NonMesh && Shapes) {
             const float aside_lit = (b.awr[k] != 0.f) | (b.awg[k] != 0.f) | (b.awb[k] != 0.f) ? 1.f : 0.f;
             lit = light.aside != 0.f ? aside_lit : lit;
             ew_r = light.aside != 0.f ? b.awr[k] : ew_r;
@@ -816,7 +821,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float f_sum = std::abs(f.v[0]) + std::abs(f.v[1]) + std::abs(f.v[2]);
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf * bsdf_mis);
-        if constexpr (NonMesh) {  // (a delta sample, a point light's, is not MIS-weighted)
+        if constexpr (NonMesh && Shapes) {  // (a delta sample, a point light's, is not MIS-weighted)
             const float delta_sample = light.aside != 0.f ? b.adelta[k] : 0.f;
             w = delta_sample != 0.f ? 1.f : w;
         }
@@ -999,6 +1004,10 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
         // Several lights, none a mesh: NonMesh 2.
         if constexpr (!O && E) {
             if (!ws.any_mesh_lights) return vertex_stage<O, D, R, 2>;
+        }
+        // The environment alone beside meshes: no spheres' cones, no aside samples.
+        if constexpr (E) {
+            if (!ws.any_sphere_lights && !ws.any_aside_lights) return vertex_stage<O, D, R, 1, false>;
         }
         return vertex_stage<O, D, R, E ? 1 : 0>;
     }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment || ws.any_sphere_lights || ws.any_aside_lights);
