@@ -1261,11 +1261,12 @@ void pack_rough_lanes(const Batch &b, const WavefrontScene &ws, RoughLanes &r, f
     r.plastic = false;
     for (int j = 0; j < r.padded; ++j) {
         const int k = r.lanes[j];
+        const WavefrontScene::Material &m = ws.materials[size_t(b.mat[k])];
         r.mat[j] = b.mat[k];
-        r.plastic = r.plastic || ws.materials[size_t(b.mat[k])].plastic != 0.f;
+        r.plastic = r.plastic || m.plastic != 0.f;
         r.ar[j] = b.ar[k], r.ag[j] = b.ag[k], r.ab[j] = b.ab[k], r.tr[j] = b.tr[k], r.tg[j] = b.tg[k], r.tb[j] = b.tb[k];
         // (The flip as a product with -1, as the vertex stage's: exact.)
-        const float side = ws.materials[size_t(b.mat[k])].twosided != 0 && b.wiz[k] < 0.f ? -1.f : 1.f;
+        const float side = m.twosided != 0 && b.wiz[k] < 0.f ? -1.f : 1.f;
         r.wix[j] = b.wix[k], r.wiy[j] = b.wiy[k], r.wiz[j] = b.wiz[k] * side;
         r.br[j] = b.br[k], r.bg[j] = b.bg[k], r.bb[j] = b.bb[k];
         u1s[j] = b.pb1[k], ux[j] = b.pb2x[k], uy[j] = b.pb2y[k];
@@ -1295,7 +1296,6 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
         const float a[3] = {ar[j], ag[j], ab[j]}, s[3] = {tr[j], tg[j], tb[j]};
         const Vec3 wi{wix[j], wiy[j], wiz[j]};
         const Vec2 u2{ux[j], uy[j]};
-        const Vec3 cos_wo = warp::square_to_cosine_hemisphere(u2);
         Vec3 normal;
         MicrofacetTerms terms;
         if constexpr (Terms == Microfacet::StoredOnly) {
@@ -1307,8 +1307,9 @@ void rough_samples(Batch &b, const RoughLanes &r, const WavefrontScene &ws, cons
         const Vec3 specular = reflect(wi, normal);
         Vec3 wo = specular;
         if constexpr (Plastic) {
+            // (A roughplastic's base: the cosine-weighted direction.)
             const float pick_base = u1s[j] < specular_probability(m, transmittance(tables, m.table, wi.z)) ? 0.f : m.plastic;
-            wo = select(pick_base != 0.f, cos_wo, specular);
+            wo = select(pick_base != 0.f, warp::square_to_cosine_hemisphere(u2), specular);
         }
         ox[j] = wo.x, oy[j] = wo.y, oz[j] = wo.z;
         if constexpr (Defer) {
