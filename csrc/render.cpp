@@ -272,16 +272,39 @@ public:
     /// values finite: each pixel of the filter's whole window adds them one after another,
     /// the sums splat() makes (a weight splat() skips is zero, and adding w L = +-0 leaves a
     /// sum unchanged: no sum is -0), with a row of sums held in registers over the run
-    /// instead of loaded and stored per sample (veach-mis's gaussian: 4-5% of a render). The tent's
-    /// splats, 2 x 2 of its 3 x 3 pixels, gain nothing from it (cbox at 4 spp took 2% longer),
-    /// nor do windows the film's edges cut, nor wider filters': they take splat().
+    /// instead of loaded and stored per sample (veach-mis's gaussian: 4-5% of a render; the
+    /// tent's nine sums, splat_run_tent: the film's samples a fifth to a third fewer, 1 to 64
+    /// spp). Windows the film's edges cut, and wider filters', take splat().
     void splat_run(Block &block, int px, int py, const SplatWeights &w, const int *ks, int r,
                    const RGB<float> *L) const {
         const Window win = window(px, py, 0, 0, 0, 0);
         const bool whole = win.i0 == -win.b && win.i1 == win.b && win.j0 == -win.b && win.j1 == win.b;
+        if (whole && win.b == 1) return splat_run_tent(block, win, w, ks, r, L);
         if (whole && win.b == 2) return splat_run<2>(block, win, w, ks, r, L);
         if (whole && win.b == 3) return splat_run<3>(block, win, w, ks, r, L);
         for (int s = 0; s < r; ++s) splat(block, px, py, w, ks[s], &L[ks[s]]);
+    }
+
+    /// splat() of the weights alone (L null) of samples [0, n) of `w`, all taken in pixel
+    /// (px, py), in that order: over a whole window, each pixel's weight sum held in a register
+    /// over the run (the backward pass's sums W_p, a pixel's samples in one run).
+    void splat_weights(Block &block, int px, int py, const SplatWeights &w, int n) const {
+        const Window win = window(px, py, 0, 0, 0, 0);
+        const int b = win.b, N = 2 * b + 1;
+        if (win.i0 != -b || win.i1 != b || win.j0 != -b || win.j1 != b || N > 8) {
+            for (int k = 0; k < n; ++k) splat<RGB<float>>(block, px, py, w, k, nullptr);
+            return;
+        }
+        constexpr size_t Batch = SplatWeights::Batch;
+        for (int j = 0; j < N; ++j) {
+            PixelSum *sum = &block.sums[block.index(win.x - b, win.y + j - b)];
+            double acc[8];
+            for (int i = 0; i < N; ++i) acc[i] = sum[i].weight;
+            const float *wy = &w.wy[size_t(j) * Batch];
+            for (int k = 0; k < n; ++k)
+                for (int i = 0; i < N; ++i) acc[i] += double(w.wx[size_t(i) * Batch + size_t(k)]) * double(wy[k]);
+            for (int i = 0; i < N; ++i) sum[i].weight = acc[i];
+        }
     }
 
     /// Move tile (tx, ty)'s block into the film: its own pixels now, its border when its turn
@@ -501,6 +524,57 @@ private:
 #endif
     }
 
+    /// splat_run() over the tent's whole 3 x 3 window: its nine sums held in registers over the
+    /// run, each sample adding wy_j (wx_i l) to all nine (l = (r, g, b, 1); the weights
+    /// outside the 2 x 2 pixels splat() reaches are zero, and adding zero leaves a sum
+    /// unchanged), the products and sums add_2x2() makes, in its order. One sample after
+    /// another, add_2x2() loaded a row's two sums as one 64-byte vector that the previous
+    /// sample had stored at a 32-byte offset in half the runs (the pixel to the left or to the
+    /// right), and such a partly overlapping load waits for the store to retire.
+    void splat_run_tent(Block &block, const Window &win, const SplatWeights &w, const int *ks, int r,
+                        const RGB<float> *L) const {
+        constexpr size_t Batch = SplatWeights::Batch;
+        PixelSum *row[3];
+        for (int j = 0; j < 3; ++j) row[j] = &block.sums[block.index(win.x - 1, win.y + j - 1)];
+        const float *wx = w.wx.data(), *wy = w.wy.data();
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+        // Each row's first two sums as one vector, its third as another.
+        __m512d a[3];
+        __m256d c[3];
+        for (int j = 0; j < 3; ++j) a[j] = _mm512_loadu_pd(row[j][0].value), c[j] = _mm256_loadu_pd(row[j][2].value);
+        for (int s = 0; s < r; ++s) {
+            const size_t k = size_t(ks[s]);
+            const __m256d l = _mm256_cvtps_pd(_mm_mask_blend_ps(0x8, _mm_maskz_loadu_ps(0x7, L[k].v), _mm_set1_ps(1.f)));
+            const __m512d wx01 = _mm512_insertf64x4(_mm512_castpd256_pd512(_mm256_set1_pd(double(wx[k]))),
+                                                    _mm256_set1_pd(double(wx[Batch + k])), 1);
+            const __m512d q = _mm512_mul_pd(wx01, _mm512_broadcast_f64x4(l));
+            const __m256d q2 = _mm256_mul_pd(_mm256_set1_pd(double(wx[2 * Batch + k])), l);
+            for (int j = 0; j < 3; ++j) {
+                const double wyj = double(wy[size_t(j) * Batch + k]);
+                a[j] = _mm512_add_pd(a[j], _mm512_mul_pd(_mm512_set1_pd(wyj), q));
+                c[j] = _mm256_add_pd(c[j], _mm256_mul_pd(_mm256_set1_pd(wyj), q2));
+            }
+        }
+        for (int j = 0; j < 3; ++j) _mm512_storeu_pd(row[j][0].value, a[j]), _mm256_storeu_pd(row[j][2].value, c[j]);
+#else
+        Sum4 a[3][3];
+        for (int j = 0; j < 3; ++j)
+            for (int i = 0; i < 3; ++i) a[j][i] = load_sum(row[j][i]);
+        for (int s = 0; s < r; ++s) {
+            const size_t k = size_t(ks[s]);
+            const Sum4 l = {double(L[k][0]), double(L[k][1]), double(L[k][2]), 1.0};
+            Sum4 q[3];
+            for (int i = 0; i < 3; ++i) q[i] = double(wx[size_t(i) * Batch + k]) * l;
+            for (int j = 0; j < 3; ++j) {
+                const double wyj = double(wy[size_t(j) * Batch + k]);
+                for (int i = 0; i < 3; ++i) a[j][i] += wyj * q[i];
+            }
+        }
+        for (int j = 0; j < 3; ++j)
+            for (int i = 0; i < 3; ++i) store_sum(row[j][i], a[j][i]);
+#endif
+    }
+
     /// splat_run() over a whole window of border Border (5 x 5: the gaussian's; 7 x 7), a row
     /// of the window's sums at a time held in registers over the run: the products and sums
     /// splat() makes, in its order. With AVX-512, one 8-wide vector per channel (and one
@@ -645,10 +719,16 @@ uint64_t splat_tiles_wavefront(const RenderContext<RGB<float>> &ctx, const Wavef
                                const RenderRequest &req, const Tiles &tiles, const int *tx, const int *ty,
                                int count, const Film &film, Film::Block *blocks) {
     constexpr int Chunk = WavefrontChunk;
-    static thread_local std::vector<WavefrontSample> samples(Chunk);
-    static thread_local std::vector<Vec2> pos(Chunk);
-    static thread_local std::vector<RGB<float>> L(Chunk);
-    static thread_local std::vector<int> tile_of(Chunk);  // (its index in the group)
+    // The thread's buffers, named through references: the loops below naming the thread_locals
+    // themselves called __tls_get_addr at every sample (a thread_local of a shared library).
+    static thread_local std::vector<WavefrontSample> samples_of_thread(Chunk);
+    static thread_local std::vector<Vec2> pos_of_thread(Chunk);
+    static thread_local std::vector<RGB<float>> L_of_thread(Chunk);
+    static thread_local std::vector<int> tile_of_thread(Chunk);
+    std::vector<WavefrontSample> &samples = samples_of_thread;
+    std::vector<Vec2> &pos = pos_of_thread;
+    std::vector<RGB<float>> &L = L_of_thread;
+    std::vector<int> &tile_of = tile_of_thread;  // (its index in the group)
     // A batch's filter weights (SplatWeights: in SIMD lanes).
     SplatWeights weights(camera.filter);
     static_assert(SplatWeights::Batch == WavefrontBatch);
@@ -854,7 +934,7 @@ void render_bwd(const Scene &scene, const Params<RGB<T>> &values, const Camera &
                 independent_first_2d(n, stream, index, u0, u1);
                 for (int k = 0; k < n; ++k) chunk.set(k, px, py, Vec2{float(px) + u0[k], float(py) + u1[k]});
                 chunk.compute(n);
-                for (int k = 0; k < n; ++k) weights.splat<RGB<T>>(block, px, py, chunk, k, nullptr);
+                weights.splat_weights(block, px, py, chunk, n);
             }
             for (int s = 0; !independent && s < req.spp; ++s) {
                 Sampler sampler(camera.sampler, seed, uint64_t(s));
