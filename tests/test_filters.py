@@ -179,9 +179,10 @@ def test07_tiles_splat_across_their_borders(rfilter):
 
 @pytest.mark.parametrize("res", [(23, 19), (16, 16)])
 def test08_tent_splats_sum_as_the_dual_film_does(res):
-    # The primal film adds the tent's 2 x 2 splats on a path of its own (Film::add_2x2: a
-    # row's two pixels in one vector with AVX-512); the dual film of forward mode adds them in
-    # its general loop. With only emission seen directly (max_depth 1) of radiance 1,
+    # The primal film adds the tent's 2 x 2 splats on paths of its own (Film::splat_run_tent:
+    # a pixel's run of samples into its 3 x 3 sums held in registers; Film::add_2x2 at the
+    # film's edges: a row's two pixels in one vector with AVX-512); the dual film of forward
+    # mode adds them in its general loop. With only emission seen directly (max_depth 1) of radiance 1,
     # differentiated along a tangent of 1, every sample has L = dL/dt = 1, so the image and its
     # derivative are the same weighted sums over the same weights: bitwise equal. The lights'
     # edges (pixels between 0 and 1) show a splat with a column or row of weights swapped or
