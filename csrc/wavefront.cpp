@@ -653,15 +653,19 @@ __attribute__((noinline)) void light_point_stage(Batch &b, int n, const Wavefron
 /// diffuse BSDF's and keeps what that stage needs); NonMesh: whether some emitters have no
 /// mesh (the `constant` environment, spheres: 1), or none has (2, with several lights); Shapes:
 /// whether some of those are spheres or lights sampled aside (without, the environment alone:
-/// an environment beside mesh lights skips the spheres' cones and the aside samples' columns).
+/// an environment beside mesh lights skips the spheres' cones and the aside samples' columns);
+/// Two: a scene of two lights (as one beside the environment), whose fields each lane selects
+/// from the two instead of loading its own lane by lane.
 /// The code of the BSDFs and emitters a scene does not have is left out.
-template <bool OneLight, bool Delta, bool Rough, int NonMesh, bool Shapes = true>
+template <bool OneLight, bool Delta, bool Rough, int NonMesh, bool Shapes = true, bool Two = false>
 void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSettings &cfg) {
     const WavefrontScene::Material *mats = ws.materials.data();
     const WavefrontScene::Light *lights = ws.lights.data();
     // (With one light, its fields are invariants of the loop: a load of one under a condition
     // would become a masked load of one address, which GCC does not vectorise.)
     const WavefrontScene::Light first = ws.lights[0];
+    // (With Two, the second light's fields are loop invariants too.)
+    const WavefrontScene::Light second = Two ? ws.lights[1] : first;
     const float *cdfs = ws.cdf.data();
     const LightTriangles tris(ws.triangles);
     const int n_lights = OneLight ? 1 : int(ws.lights.size());
@@ -700,7 +704,14 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec2 u{b.pe0[k], b.pe1[k]};
         int index = OneLight ? 0 : std::min(int(u.x * float(n_lights)), n_lights - 1);
         u.x = std::min(u.x * float(n_lights) - float(index), 0.99999994f);
-        const WavefrontScene::Light &light = OneLight ? first : lights[index];
+        const WavefrontScene::Light &light = OneLight || Two ? first : lights[index];
+        // A field of the lane's light: with two lights selected from the two (loop invariants),
+        // else loaded lane by lane (GCC gathers them with a load and an insert per lane: a fifth
+        // of the spheres' vertex stage); its flags (1 or 0) by arithmetic, exact for them (a
+        // comparison of a selected value stops GCC 12's vectoriser). (Macros: lambdas taking
+        // a member pointer stopped it in the other instances for AVX2.)
+#define RBPT_LIGHT(field) (Two ? (index != 0 ? second.field : first.field) : light.field)
+#define RBPT_LIGHT_FLAG(field) (Two ? first.field + index * (second.field - first.field) : light.field)
         // (The environment's direction, and a sphere's point seen from inside it: uniform on
         // the sphere, from u as selection left it.)
         const Vec3 env_d = NonMesh ? warp::square_to_uniform_sphere(u) : Vec3();
@@ -709,10 +720,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         Vec3 cone_d;
         float outside = 0.f, cone_pdf = 0.f;
         if constexpr (NonMesh && Shapes) {
-            Vec3 dc = Vec3{light.cx, light.cy, light.cz} - p;
+            Vec3 dc = Vec3{RBPT_LIGHT(cx), RBPT_LIGHT(cy), RBPT_LIGHT(cz)} - p;
             float dc2 = squared_norm(dc);
-            outside = dc2 > light.outside_radius2 ? 1.f : 0.f;
-            warp::SphereConeSample cone = warp::sample_sphere_cone(dc, dc2, light.radius, u);
+            outside = dc2 > RBPT_LIGHT(outside_radius2) ? 1.f : 0.f;
+            warp::SphereConeSample cone = warp::sample_sphere_cone(dc, dc2, RBPT_LIGHT(radius), u);
             cone_d = cone.n, cone_pdf = cone.pdf;
         }
         // (With one light, light_point_stage's point, assigned over triangle 0's, which the
@@ -737,24 +748,24 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             face_n = Vec3{b.lfx[k], b.lfy[k], b.lfz[k]};
             vn = Vec3{b.lvx[k], b.lvy[k], b.lvz[k]};
         }
-        Vec3 ln = select(light.has_normals, vn, face_n);
-        ln = select(light.flip_normals, -ln, ln);
+        Vec3 ln = select(RBPT_LIGHT_FLAG(has_normals), vn, face_n);
+        ln = select(RBPT_LIGHT_FLAG(flip_normals), -ln, ln);
         if constexpr (NonMesh && Shapes) {
             // A sphere's point (its normal the direction from the centre, times the sign; seen
             // from inside, its density converts with the unsigned one, as a mesh's face normal).
             Vec3 sd = select(outside != 0.f, cone_d, env_d);
-            const bool sphere = light.sphere != 0.f;
-            lp = select(sphere, Vec3{light.cx, light.cy, light.cz} + sd * light.radius, lp);
+            const bool sphere = RBPT_LIGHT_FLAG(sphere) != 0.f;
+            lp = select(sphere, Vec3{RBPT_LIGHT(cx), RBPT_LIGHT(cy), RBPT_LIGHT(cz)} + sd * RBPT_LIGHT(radius), lp);
             face_n = select(sphere, sd, face_n);
-            ln = select(sphere, sd * light.sign, ln);
+            ln = select(sphere, sd * RBPT_LIGHT(sign), ln);
         }
         Vec3 d = lp - p;
         float dist2 = squared_norm(d), dist = std::sqrt(dist2);
         d = d * (1.f / dist);
         float abs_cos = std::abs(dot(face_n, d));
-        float area_pdf = dist2 / (light.area * abs_cos);
+        float area_pdf = dist2 / (RBPT_LIGHT(area) * abs_cos);
         float pdf = abs_cos > 0.f ? area_pdf : 0.f;
-        if constexpr (NonMesh && Shapes) pdf = light.sphere * outside != 0.f ? cone_pdf : pdf;  // (flags: 1 or 0)
+        if constexpr (NonMesh && Shapes) pdf = RBPT_LIGHT_FLAG(sphere) * outside != 0.f ? cone_pdf : pdf;  // (flags: 1 or 0)
         // A sample: emitter_sample's test pdf > 0 (sample_direction's pdf is zero at distance
         // zero) and d facing the light's front.
         float sampled = dist != 0.f ? smooth : 0.f;
@@ -764,14 +775,14 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float to_infinity = 0.f;
         if constexpr (NonMesh) {
             // The environment (emitter_sample's `constant`): a direction, always a sample.
-            const float env = light.environment;
+            const float env = RBPT_LIGHT_FLAG(environment);
             d = select(env != 0.f, env_d, d);
             pdf = env != 0.f ? InvFourPi : pdf;
             sampled = env != 0.f ? smooth : sampled;
             to_infinity = env;
             if constexpr (Shapes) {
                 // A light sampled aside: emitter_sample()'s sample (aside_emitter_stage).
-                const float aside = light.aside;
+                const float aside = RBPT_LIGHT_FLAG(aside);
                 d = select(aside != 0.f, Vec3{b.adx[k], b.ady[k], b.adz[k]}, d);
                 lp = select(aside != 0.f, Vec3{b.apx[k], b.apy[k], b.apz[k]}, lp);
                 sampled = aside != 0.f ? b.aok[k] * smooth : sampled;  // (both 1 or 0)
@@ -779,19 +790,19 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             }
         }
         float es_pdf = pdf / float(n_lights);
-        if constexpr (NonMesh && Shapes) es_pdf = light.aside != 0.f ? b.apdf[k] : es_pdf;
+        if constexpr (NonMesh && Shapes) es_pdf = RBPT_LIGHT_FLAG(aside) != 0.f ? b.apdf[k] : es_pdf;
         float inv_pdf = 1.f / es_pdf;
-        float ew_r = light.radiance.v[0] * inv_pdf, ew_g = light.radiance.v[1] * inv_pdf;
-        float ew_b = light.radiance.v[2] * inv_pdf;
+        float ew_r = RBPT_LIGHT(radiance.v[0]) * inv_pdf, ew_g = RBPT_LIGHT(radiance.v[1]) * inv_pdf;
+        float ew_b = RBPT_LIGHT(radiance.v[2]) * inv_pdf;
         // Not null (a float flag taken before the weight's selects: a comparison of selected
         // values stops the vectoriser).
         float lit = (ew_r != 0.f) | (ew_g != 0.f) | (ew_b != 0.f) ? 1.f : 0.f;
         if constexpr (NonMesh && Shapes) {
             const float aside_lit = (b.awr[k] != 0.f) | (b.awg[k] != 0.f) | (b.awb[k] != 0.f) ? 1.f : 0.f;
-            lit = light.aside != 0.f ? aside_lit : lit;
-            ew_r = light.aside != 0.f ? b.awr[k] : ew_r;
-            ew_g = light.aside != 0.f ? b.awg[k] : ew_g;
-            ew_b = light.aside != 0.f ? b.awb[k] : ew_b;
+            lit = RBPT_LIGHT_FLAG(aside) != 0.f ? aside_lit : lit;
+            ew_r = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awr[k] : ew_r;
+            ew_g = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awg[k] : ew_g;
+            ew_b = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awb[k] : ew_b;
         }
         const Color3f ew{ew_r, ew_g, ew_b};
         sampled = lit != 0.f ? sampled : 0.f;
@@ -822,7 +833,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf * bsdf_mis);
         if constexpr (NonMesh && Shapes) {  // (a delta sample, a point light's, is not MIS-weighted)
-            const float delta_sample = light.aside != 0.f ? b.adelta[k] : 0.f;
+            const float delta_sample = RBPT_LIGHT_FLAG(aside) != 0.f ? b.adelta[k] : 0.f;
             w = delta_sample != 0.f ? 1.f : w;
         }
         b.cr[k] = b.br[k] * f.v[0] * ew.v[0] * w;
@@ -921,6 +932,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         b.tmax[k] = Infinity;
     }
 }
+#undef RBPT_LIGHT_FLAG
+#undef RBPT_LIGHT
 
 /// The shadow rays' tmin (every lane's: 0).
 alignas(64) const float shadow_tmin[B] = {};
@@ -1001,13 +1014,23 @@ VertexStage vertex_stage_for(const WavefrontScene &ws) {
     return with_flags([&](auto one_light, auto delta, auto rough, auto env) -> VertexStage {
         constexpr bool O = decltype(one_light)::value, D = decltype(delta)::value;
         constexpr bool R = decltype(rough)::value, E = decltype(env)::value;
+        // (Two lights, as one beside the environment: their fields selected, not gathered.)
+        [[maybe_unused]] const bool two = ws.lights.size() == 2;
         // Several lights, none a mesh: NonMesh 2.
         if constexpr (!O && E) {
-            if (!ws.any_mesh_lights) return vertex_stage<O, D, R, 2>;
+            if (!ws.any_mesh_lights) {
+                if (two) return vertex_stage<O, D, R, 2, true, true>;
+                return vertex_stage<O, D, R, 2>;
+            }
         }
         // The environment alone beside meshes: no spheres' cones, no aside samples.
         if constexpr (E) {
-            if (!ws.any_sphere_lights && !ws.any_aside_lights) return vertex_stage<O, D, R, 1, false>;
+            if (!ws.any_sphere_lights && !ws.any_aside_lights) {
+                if constexpr (!O) {
+                    if (two) return vertex_stage<O, D, R, 1, false, true>;
+                }
+                return vertex_stage<O, D, R, 1, false>;
+            }
         }
         return vertex_stage<O, D, R, E ? 1 : 0>;
     }, ws.lights.size() == 1, ws.any_delta, ws.any_rough, ws.environment || ws.any_sphere_lights || ws.any_aside_lights);
