@@ -278,7 +278,7 @@ public:
     void splat_run(Block &block, int px, int py, const SplatWeights &w, const int *ks, int r,
                    const RGB<float> *L) const {
         const Window win = window(px, py, 0, 0, 0, 0);
-        const bool whole = win.i0 == -win.b && win.i1 == win.b && win.j0 == -win.b && win.j1 == win.b;
+        const bool whole = win.whole();
         if (whole && win.b == 1) return splat_run_tent(block, win, w, ks, r, L);
         if (whole && win.b == 2) return splat_run<2>(block, win, w, ks, r, L);
         if (whole && win.b == 3) return splat_run<3>(block, win, w, ks, r, L);
@@ -291,7 +291,7 @@ public:
     void splat_weights(Block &block, int px, int py, const SplatWeights &w, int n) const {
         const Window win = window(px, py, 0, 0, 0, 0);
         const int b = win.b, N = 2 * b + 1;
-        if (win.i0 != -b || win.i1 != b || win.j0 != -b || win.j1 != b || N > 8) {
+        if (!win.whole() || N > 8) {
             for (int k = 0; k < n; ++k) splat<RGB<float>>(block, px, py, w, k, nullptr);
             return;
         }
@@ -416,6 +416,8 @@ private:
     /// 3 x 3 pixels; what it skips would add zeros, which leave a sum unchanged).
     struct Window {
         int b, x, y, i0, i1, j0, j1;
+        /// Whether it is the filter's whole window, uncut by the film's edges.
+        bool whole() const { return i0 == -b && i1 == b && j0 == -b && j1 == b; }
     };
     /// A sample's filter weights and its window.
     struct Footprint : Window {

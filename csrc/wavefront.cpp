@@ -719,6 +719,8 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         // subtends, the Taylor expansion for small cones, and the cone's density.
         Vec3 cone_d;
         float outside = 0.f, cone_pdf = 0.f;
+        // Whether it is a light sampled aside (1 or 0).
+        [[maybe_unused]] const float aside = NonMesh && Shapes ? RBPT_LIGHT_FLAG(aside) : 0.f;
         if constexpr (NonMesh && Shapes) {
             Vec3 dc = Vec3{RBPT_LIGHT(cx), RBPT_LIGHT(cy), RBPT_LIGHT(cz)} - p;
             float dc2 = squared_norm(dc);
@@ -782,7 +784,6 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             to_infinity = env;
             if constexpr (Shapes) {
                 // A light sampled aside: emitter_sample()'s sample (aside_emitter_stage).
-                const float aside = RBPT_LIGHT_FLAG(aside);
                 d = select(aside != 0.f, Vec3{b.adx[k], b.ady[k], b.adz[k]}, d);
                 lp = select(aside != 0.f, Vec3{b.apx[k], b.apy[k], b.apz[k]}, lp);
                 sampled = aside != 0.f ? b.aok[k] * smooth : sampled;  // (both 1 or 0)
@@ -790,7 +791,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
             }
         }
         float es_pdf = pdf / float(n_lights);
-        if constexpr (NonMesh && Shapes) es_pdf = RBPT_LIGHT_FLAG(aside) != 0.f ? b.apdf[k] : es_pdf;
+        if constexpr (NonMesh && Shapes) es_pdf = aside != 0.f ? b.apdf[k] : es_pdf;
         float inv_pdf = 1.f / es_pdf;
         float ew_r = RBPT_LIGHT(radiance.v[0]) * inv_pdf, ew_g = RBPT_LIGHT(radiance.v[1]) * inv_pdf;
         float ew_b = RBPT_LIGHT(radiance.v[2]) * inv_pdf;
@@ -799,10 +800,10 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         float lit = (ew_r != 0.f) | (ew_g != 0.f) | (ew_b != 0.f) ? 1.f : 0.f;
         if constexpr (NonMesh && Shapes) {
             const float aside_lit = (b.awr[k] != 0.f) | (b.awg[k] != 0.f) | (b.awb[k] != 0.f) ? 1.f : 0.f;
-            lit = RBPT_LIGHT_FLAG(aside) != 0.f ? aside_lit : lit;
-            ew_r = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awr[k] : ew_r;
-            ew_g = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awg[k] : ew_g;
-            ew_b = RBPT_LIGHT_FLAG(aside) != 0.f ? b.awb[k] : ew_b;
+            lit = aside != 0.f ? aside_lit : lit;
+            ew_r = aside != 0.f ? b.awr[k] : ew_r;
+            ew_g = aside != 0.f ? b.awg[k] : ew_g;
+            ew_b = aside != 0.f ? b.awb[k] : ew_b;
         }
         const Color3f ew{ew_r, ew_g, ew_b};
         sampled = lit != 0.f ? sampled : 0.f;
@@ -833,7 +834,7 @@ void vertex_stage(Batch &b, int n, const WavefrontScene &ws, const IntegratorSet
         sampled = f_sum != 0.f ? sampled : 0.f;
         float w = mis_weight(es_pdf, f_pdf * bsdf_mis);
         if constexpr (NonMesh && Shapes) {  // (a delta sample, a point light's, is not MIS-weighted)
-            const float delta_sample = RBPT_LIGHT_FLAG(aside) != 0.f ? b.adelta[k] : 0.f;
+            const float delta_sample = aside != 0.f ? b.adelta[k] : 0.f;
             w = delta_sample != 0.f ? 1.f : w;
         }
         b.cr[k] = b.br[k] * f.v[0] * ew.v[0] * w;
